@@ -1,0 +1,76 @@
+"""uimm_jax: multi-fault diagnosis with EKF banks, IMM mixing and the updated IMM (UIMM).
+
+After Sun, Wang and Lin, "Multi-Fault Diagnosis Approach Based on Updated Interacting
+Multiple Model for Aviation Hydraulic Actuator", Information 2020, 11, 410.
+
+Importing the package does no work and changes no JAX configuration.  float64 is the
+reference precision: enable it with ``jax.config.update("jax_enable_x64", True)`` before
+building arrays.  For speed on the CPU, call
+:func:`uimm_jax.xla_flags.apply_recommended_xla_flags` before JAX starts (the CLI does).
+"""
+
+from importlib.metadata import PackageNotFoundError, version
+
+from uimm_jax.bank import FaultTable, fault_table
+from uimm_jax.errors import ScenarioError, UIMMWarning
+from uimm_jax.filtering import IMMResult, LinearGaussianBank, imm_filter
+from uimm_jax.imm import IMMParams, IMMState, StepInfo, imm_step
+from uimm_jax.kalman import ekf_predict, ekf_update
+from uimm_jax.models import (
+    Fault,
+    LinearPlant,
+    NonlinearPlant,
+    get_plant,
+    list_plants,
+    register_plant,
+)
+from uimm_jax.runner import (
+    RunResult,
+    filter_measurements,
+    run_scenario,
+    setup_scenario,
+    simulate_scenario,
+)
+from uimm_jax.scenarios import Scenario, dump_scenario, load_scenario, parse_scenario
+from uimm_jax.uimm import DiagInfo, Diagnoser, DiagParams, DiagState, build_diagnoser
+
+try:
+    __version__ = version("uimm-jax")
+except PackageNotFoundError:  # pragma: no cover - running from a source tree
+    __version__ = "0.0.0"
+
+__all__ = [
+    "DiagInfo",
+    "DiagParams",
+    "DiagState",
+    "Diagnoser",
+    "Fault",
+    "FaultTable",
+    "IMMParams",
+    "IMMResult",
+    "IMMState",
+    "LinearGaussianBank",
+    "LinearPlant",
+    "NonlinearPlant",
+    "RunResult",
+    "Scenario",
+    "ScenarioError",
+    "StepInfo",
+    "UIMMWarning",
+    "build_diagnoser",
+    "dump_scenario",
+    "ekf_predict",
+    "ekf_update",
+    "fault_table",
+    "filter_measurements",
+    "get_plant",
+    "imm_filter",
+    "imm_step",
+    "list_plants",
+    "load_scenario",
+    "parse_scenario",
+    "register_plant",
+    "run_scenario",
+    "setup_scenario",
+    "simulate_scenario",
+]

@@ -1,0 +1,139 @@
+"""Fault tables and model banks: which parameter vector each model of a bank uses.
+
+A :class:`FaultTable` stacks a fault library into arrays: ``mask[j, q]`` is true when
+fault ``j`` changes parameter ``q`` and ``values[j, q]`` is its fault value.  A model is a
+*fault set* ``S`` (a boolean vector over faults); its parameters are
+
+    theta(S) = where(any_j S_j & mask_j, values, nominal)            (masked array update)
+
+* UIMM (paper section 3.2, design.md section 3): with the declared set ``D``, the bank is
+  ``[D, D + f_1, ..., D + f_F]`` -- ``F + 1`` models whatever ``D`` is.
+* Combinatorial IMM (paper section 3.3): all ``2^F`` subsets, model ``s`` having the faults
+  whose bits are set in ``s``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = [
+    "FaultTable",
+    "combinatorial_sets",
+    "fault_table",
+    "set_codes",
+    "thetas_for_sets",
+    "uimm_sets",
+]
+
+
+class FaultTable(NamedTuple):
+    """A fault library as arrays (F faults, P parameters).
+
+    Attributes:
+        names: fault names, in bank order.
+        nominal: ``(P,)`` nominal parameters.
+        mask: ``(F, P)`` bool, which parameters each fault changes.
+        values: ``(F, P)`` fault values (nominal where not changed).
+    """
+
+    names: tuple[str, ...]
+    nominal: np.ndarray
+    mask: np.ndarray
+    values: np.ndarray
+
+    @property
+    def num_faults(self) -> int:
+        """``F``."""
+        return len(self.names)
+
+    def theta_numpy(self, fault_set: Sequence[bool], magnitudes=None) -> np.ndarray:
+        """Parameters of one fault set on the host, with optional per-fault magnitudes.
+
+        A magnitude ``a`` places the parameter at ``nominal + a (fault - nominal)``.
+        """
+        th = self.nominal.copy()
+        for j, on in enumerate(fault_set):
+            if on:
+                a = 1.0 if magnitudes is None else float(magnitudes[j])
+                th = np.where(self.mask[j], self.nominal + a * (self.values[j] - self.nominal), th)
+        return th
+
+
+def fault_table(
+    param_names: Sequence[str], nominal: np.ndarray, faults: Mapping[str, Mapping[str, float]]
+) -> FaultTable:
+    """Stack a fault library ``{fault: {param: value}}`` into a :class:`FaultTable`.
+
+    Raises:
+        ValueError: on an unknown parameter, or two faults that change the same parameter
+            (the masked update would be ambiguous).
+    """
+    names = tuple(faults)
+    P = len(param_names)
+    mask = np.zeros((len(names), P), bool)
+    values = np.tile(np.asarray(nominal, np.float64), (len(names), 1))
+    for j, name in enumerate(names):
+        for pname, v in faults[name].items():
+            if pname not in param_names:
+                raise ValueError(
+                    f"fault {name!r}: unknown parameter {pname!r}; known: {', '.join(param_names)}"
+                )
+            q = list(param_names).index(pname)
+            mask[j, q] = True
+            values[j, q] = float(v)
+    overlap = mask.sum(axis=0) > 1
+    if np.any(overlap):
+        q = int(np.flatnonzero(overlap)[0])
+        who = [names[j] for j in np.flatnonzero(mask[:, q])]
+        raise ValueError(
+            f"faults {who} all change parameter {param_names[q]!r}; each parameter "
+            "may belong to one fault only"
+        )
+    return FaultTable(names, np.asarray(nominal, np.float64), mask, values)
+
+
+def uimm_sets(declared: jax.Array) -> jax.Array:
+    """UIMM bank fault sets ``[D, D+f1, ..., D+fF]``: ``(*runs, F)`` -> ``(*runs, F+1, F)``."""
+    F = declared.shape[-1]
+    eye = jnp.concatenate([jnp.zeros((1, F), bool), jnp.eye(F, dtype=bool)], axis=0)
+    return declared[..., None, :] | eye
+
+
+def combinatorial_sets(num_faults: int) -> np.ndarray:
+    """All ``2^F`` fault subsets, model ``s`` holding fault ``j`` iff bit ``j`` of ``s`` is set."""
+    s = np.arange(2**num_faults)[:, None]
+    return ((s >> np.arange(num_faults)[None, :]) & 1).astype(bool)
+
+
+def set_codes(sets: jax.Array) -> jax.Array:
+    """Bitmask code of fault sets (bit j = fault j): ``(..., F)`` bool -> ``(...)`` int32."""
+    F = sets.shape[-1]
+    w = jnp.asarray(1 << np.arange(F), jnp.int32)
+    return jnp.sum(jnp.where(sets, w, 0), axis=-1).astype(jnp.int32)
+
+
+def thetas_for_sets(table: FaultTable, sets: jax.Array, dtype=None) -> jax.Array:
+    """Parameter vectors of fault sets in batch-minor layout.
+
+    Args:
+        table: the fault table.
+        sets: ``(*batch, F)`` boolean fault sets.
+        dtype: output dtype (default: the default float type).
+
+    Returns:
+        ``(P, *batch)`` parameters: ``jnp.where(mask, fault_value, nominal)``.
+    """
+    dtype = dtype or jnp.asarray(0.0).dtype
+    mask = jnp.asarray(table.mask)  # (F, P)
+    values = jnp.asarray(table.values, dtype)
+    nominal = jnp.asarray(table.nominal, dtype)
+    touch = sets[..., :, None] & mask  # (*batch, F, P)
+    any_touch = jnp.any(touch, axis=-2)
+    val = jnp.sum(jnp.where(touch, values, 0.0), axis=-2)
+    theta = jnp.where(any_touch, val, nominal)  # (*batch, P)
+    return jnp.moveaxis(theta, -1, 0)

@@ -1,0 +1,198 @@
+"""Command line: ``uimm-jax run SCENARIO [--out DIR] [--method uimm|imm] [--seed N]``.
+
+The CLI (not the library) enables float64 and the recommended XLA CPU flags before JAX
+starts (opt out of the flags with ``UIMM_JAX_NO_XLA_FLAGS=1``).  Invalid input is reported
+as one line naming the field, without a traceback, and the exit status is 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+import warnings
+from pathlib import Path
+
+__all__ = ["main"]
+
+
+def _setup_jax() -> None:
+    from uimm_jax.xla_flags import apply_recommended_xla_flags
+
+    apply_recommended_xla_flags()
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+
+
+class _Progress:
+    """Prints ``stage: 40% (400000/1000000 steps, 3.2 s, ETA 4.8 s)`` to stderr."""
+
+    def __init__(self, enabled: bool):
+        self.enabled = enabled
+
+    def __call__(self, stage: str, done: int, total: int, elapsed: float) -> None:
+        if not self.enabled:
+            return
+        frac = done / max(total, 1)
+        eta = elapsed / frac - elapsed if frac > 0 else float("nan")
+        end = "\n" if done >= total else "\r"
+        print(
+            f"  {stage:9s} {100 * frac:5.1f}% ({done}/{total} steps, {elapsed:6.1f} s, "
+            f"ETA {eta:5.1f} s)",
+            end=end,
+            file=sys.stderr,
+            flush=True,
+        )
+
+
+def _write_figures(result, out: Path) -> list[str]:
+    import numpy as np
+
+    from uimm_jax import plotting
+
+    sc = result.setup.scenario
+    diag = result.setup.diagnoser
+    t = result.truth["t"]
+    o = result.outputs
+    s = result.summary
+    events = [(e["time"], e["fault"]) for e in s["events"]]
+    decl = [(d["time"], d["fault"]) for d in s["declarations"]]
+    title = f"{sc.name} ({s['method'].upper()}, {s['num_models']} models)"
+    figs = {
+        "mode_probabilities.png": plotting.plot_mode_probabilities(
+            t,
+            o["mode_probs"],
+            diag.model_labels(),
+            events=events,
+            declarations=decl,
+            title=f"Mode probabilities - {title}",
+        ),
+        "mode_recognition.png": plotting.plot_mode_recognition(
+            t,
+            np.asarray(o["recognised"]),
+            np.asarray(result.truth["truth"]),
+            list(diag.table.names),
+            title=f"Recognised mode vs truth - {title}",
+        ),
+        "states.png": plotting.plot_states(
+            t,
+            result.truth["x"],
+            o["mean"],
+            list(sc.plant.state_names),
+            title=f"Estimated vs true states - {title}",
+        ),
+        "model_count.png": plotting.plot_model_count(max(10, diag.num_faults)),
+    }
+    written = []
+    for name, fig in figs.items():
+        plotting.save_figure(fig, out / name)
+        written.append(str(out / name))
+    return written
+
+
+def _print_summary(s: dict) -> None:
+    print(
+        f"scenario      {s['scenario']}  ({s['method']}, {s['num_models']} models, "
+        f"{s['num_steps']} steps of {s['dt']:g} s)"
+    )
+    for e in s["events"]:
+        d = s["detection_delay_s"].get(e["fault"])
+        verdict = f"declared after {d * 1e3:.1f} ms" if d is not None else "NOT declared"
+        print(f"  truth  {e['fault']:<22s} at {e['time']:8.3f} s -> {verdict}")
+    for d in s["declarations"]:
+        tag = "ok" if d["correct"] else "FALSE"
+        print(f"  declared {d['fault']:<20s} at {d['time']:8.4f} s  [{tag}]")
+    print(f"false declarations  {s['false_declarations']}")
+    print(f"mode accuracy       {s['mode_accuracy']:.4f}")
+    print(
+        f"filter runtime      {s['runtime_s']:.2f} s  ({s['steps_per_s'] / 1e6:.3f} M steps/s, "
+        f"{1e6 / s['steps_per_s']:.2f} us/step, first call includes compilation)"
+    )
+
+
+def _cmd_run(args) -> int:
+    from uimm_jax.runner import run_scenario
+    from uimm_jax.scenarios import load_scenario
+
+    sc = load_scenario(args.scenario)
+    method = args.method or sc.filter.method
+    measurements = None
+    if args.measurements:
+        from uimm_jax.measured import load_measurements
+
+        measurements = load_measurements(args.measurements, sc)
+    print(
+        f"running {sc.name} from {args.scenario} with {method.upper()} ({sc.num_steps} steps)",
+        file=sys.stderr,
+    )
+    t0 = time.perf_counter()
+    result = run_scenario(
+        sc, method, args.seed, progress=_Progress(not args.quiet), measurements=measurements
+    )
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    summary = dict(result.summary)
+    summary["wall_time_s"] = time.perf_counter() - t0
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    figures = [] if args.no_plots else _write_figures(result, out)
+    _print_summary(summary)
+    print(f"wrote {out / 'summary.json'}" + (f" and {len(figures)} figures" if figures else ""))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``uimm-jax`` argument parser (sub-commands register here)."""
+    p = argparse.ArgumentParser(prog="uimm-jax", description=__doc__.split("\n")[0])
+    sub = p.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("run", help="simulate a scenario and diagnose it")
+    r.add_argument("scenario", help="scenario TOML file (see docs/scenarios.md)")
+    r.add_argument("--out", default="out", help="output directory (default: out)")
+    r.add_argument("--method", choices=("uimm", "imm"), help="override [filter].method")
+    r.add_argument("--seed", type=int, help="override the scenario's seed")
+    r.add_argument(
+        "--measurements",
+        help="diagnose measured data (CSV or .npy) instead of simulating; see docs/measurements.md",
+    )
+    r.add_argument("--no-plots", action="store_true", help="write summary.json only")
+    r.add_argument("--quiet", action="store_true", help="no progress output")
+    r.set_defaults(func=_cmd_run)
+    _register_optional(sub)
+    return p
+
+
+def _register_optional(sub) -> None:
+    """Sub-commands that live in their own modules (sweep, tune)."""
+    for modname in ("uimm_jax.sweep_cli", "uimm_jax.tune_cli"):
+        try:
+            mod = __import__(modname, fromlist=["register"])
+        except ImportError:
+            continue
+        mod.register(sub)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``uimm-jax`` command."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _setup_jax()
+    from uimm_jax.errors import ScenarioError, UIMMWarning
+
+    def _show(message, category, filename, lineno, file=None, line=None):
+        print(f"warning: {message}", file=sys.stderr)
+
+    del UIMMWarning
+    warnings.showwarning = _show
+    try:
+        return int(args.func(args) or 0)
+    except (ScenarioError, ValueError, FileNotFoundError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,297 @@
+"""Per-model dynamics for a filter bank: discretisation, prediction and linearisation.
+
+A *dynamics* object turns a plant into what the bank kernel needs at each step:
+
+* ``prepare(theta) -> cache`` -- once per parameter set (at start-up, and again only when
+  UIMM replaces fault parameters).  For a continuous linear plant this is the exact
+  zero-order-hold discretisation ``[[Ad, Bd], [0, I]] = expm([[A, B], [0, 0]] T)`` (paper
+  eq. 10), computed elementwise (:func:`uimm_jax._smallmat.expm`) so that it may run
+  inside the hoisted time loop under ``lax.cond``.
+* ``predict(cache, x, u) -> (x_pred, F)`` -- paper eqs. 18-19.
+* ``observe(cache, x_pred) -> (y_pred, H)`` -- paper eqs. 18, 20.
+
+Arrays are batch-minor: ``theta`` is ``(P, *batch)``, the cache leaves carry the matrix
+indices first and the batch (runs..., models) last; ``x`` and the results are nested
+entry lists (:mod:`uimm_jax._smallmat`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from uimm_jax import _smallmat as sm
+from uimm_jax.models import LinearPlant, NonlinearPlant
+
+__all__ = ["LinearCache", "LinearDynamics", "NonlinearDynamics", "make_dynamics", "zoh"]
+
+
+class LinearCache(NamedTuple):
+    """Discrete-time matrices of every model of a bank (batch axes last).
+
+    Attributes:
+        A: ``(n, n, *batch)`` state transition ``Ad``.
+        B: ``(n, p, *batch)`` input matrix ``Bd``.
+        C: ``(m, n, *batch)`` measurement matrix, or ``None`` when it is a constant of the
+            dynamics object.
+        d: ``(m, *batch)`` measurement offset, or ``None`` when constant.
+    """
+
+    A: jax.Array
+    B: jax.Array
+    C: jax.Array | None
+    d: jax.Array | None
+
+
+def _batched_call(fn, theta: jax.Array, n_out: int):
+    """Call a single-model ``fn(theta_vec)`` on ``theta`` of shape ``(P, *batch)``.
+
+    Returns ``n_out`` arrays with the function's output axes first and the batch last.
+    """
+    P = theta.shape[0]
+    batch = theta.shape[1:]
+    flat = theta.reshape(P, -1)
+    outs = jax.vmap(fn, in_axes=1)(flat)
+    res = []
+    for o in outs[:n_out]:
+        o = jnp.moveaxis(o, 0, -1)
+        res.append(o.reshape(o.shape[:-1] + batch))
+    return res
+
+
+def zoh(A: list, B: list, dt: float, *, balance=None, squarings: int = 0) -> tuple[list, list]:
+    """Exact zero-order-hold discretisation of ``(A, B)`` (nested entries).
+
+    Args:
+        A: continuous ``n x n``.
+        B: continuous ``n x p``.
+        dt: sampling time.
+        balance: static balancing diagonal for the augmented ``(n+p)`` matrix.
+        squarings: static number of squarings in the matrix exponential.
+
+    Returns:
+        ``(Ad, Bd)``.
+    """
+    n = len(A)
+    p = len(B[0])
+    aug = [
+        [sm.mul(A[i][j], dt) for j in range(n)] + [sm.mul(B[i][k], dt) for k in range(p)]
+        for i in range(n)
+    ]
+    aug += [[0.0] * (n + p) for _ in range(p)]
+    E = sm.expm(aug, balance=balance, squarings=squarings)
+    return [row[:n] for row in E[:n]], [row[n:] for row in E[:n]]
+
+
+def _zoh_settings(mats: list[np.ndarray], dt: float) -> tuple[np.ndarray, int]:
+    """Balancing and number of squarings that suit every given augmented matrix."""
+    d = sm.balance_diagonal(sum(np.abs(m) for m in mats) * dt)
+    norm = 0.0
+    for m in mats:
+        b = (m * dt) * d[None, :] / d[:, None]
+        norm = max(norm, np.max(np.sum(np.abs(b), axis=1)))
+    # |b / 2^s| <= 0.25, plus two spare squarings for parameters away from the library.
+    s = 0 if norm <= 0.25 else int(math.ceil(math.log2(norm / 0.25)))
+    return d, s + 2
+
+
+class LinearDynamics:
+    """Dynamics of a :class:`~uimm_jax.models.LinearPlant` (exact KF = EKF).
+
+    Args:
+        plant: the plant.
+        dt: sampling time (ignored for discrete-time plants).
+        reference_thetas: parameter vectors the bank will use (nominal and fault values);
+            they fix the static balancing and number of squarings of the matrix
+            exponential, and reveal whether ``C`` and ``d`` are constants.
+    """
+
+    linear = True
+
+    def __init__(self, plant: LinearPlant, dt: float, reference_thetas: np.ndarray):
+        self.plant = plant
+        self.dt = float(dt)
+        refs = np.atleast_2d(np.asarray(reference_thetas, dtype=np.float64))
+        mats = [self._single(np.asarray(t)) for t in refs]
+        n = plant.state_dim
+        p = plant.input_dim
+        self.n, self.p, self.m = n, p, plant.output_dim
+        C0, d0 = mats[0][2], mats[0][3]
+        self.const_C = C0 if all(np.array_equal(m[2], C0) for m in mats) else None
+        self.const_d = d0 if all(np.array_equal(m[3], d0) for m in mats) else None
+        if plant.time == "continuous":
+            augs = []
+            for A, B, _, _ in mats:
+                aug = np.zeros((n + p, n + p))
+                aug[:n, :n] = A
+                aug[:n, n:] = B
+                augs.append(aug)
+            self.balance, self.squarings = _zoh_settings(augs, self.dt)
+        else:
+            self.balance, self.squarings = None, 0
+
+    def _single(self, theta: np.ndarray):
+        with jax.ensure_compile_time_eval():
+            A, B, C, d = self.plant.matrices(self.plant.params(jnp.asarray(theta)))
+        return (
+            np.asarray(A, np.float64),
+            np.asarray(B, np.float64),
+            np.asarray(C, np.float64),
+            np.asarray(d, np.float64),
+        )
+
+    def prepare(self, theta: jax.Array) -> LinearCache:
+        """Discretise every model; ``theta`` is ``(P, *batch)``."""
+
+        def fn(th):
+            A, B, C, d = self.plant.matrices(self.plant.params(th))
+            dtype = th.dtype
+            return (
+                jnp.asarray(A, dtype),
+                jnp.asarray(B, dtype),
+                jnp.asarray(C, dtype),
+                jnp.asarray(d, dtype),
+            )
+
+        A, B, C, d = _batched_call(fn, theta, 4)
+        if self.plant.time == "continuous":
+            Ad, Bd = zoh(
+                sm.from_array(A, 2),
+                sm.from_array(B, 2),
+                self.dt,
+                balance=self.balance,
+                squarings=self.squarings,
+            )
+            batch = theta.shape[1:]
+            A = sm.to_array(Ad, batch, theta.dtype)
+            B = sm.to_array(Bd, batch, theta.dtype)
+        return LinearCache(
+            A, B, None if self.const_C is not None else C, None if self.const_d is not None else d
+        )
+
+    def predict(self, cache: LinearCache, x: list, u: list) -> tuple[list, list]:
+        """``x_pred = Ad x + Bd u`` and ``F = Ad`` (exact)."""
+        A = sm.from_array(cache.A, 2)
+        B = sm.from_array(cache.B, 2)
+        return sm.add(sm.matvec(A, x), sm.matvec(B, u)), A
+
+    def observe(self, cache: LinearCache, x: list) -> tuple[list, list]:
+        """``y_pred = C x + d`` and ``H = C``."""
+        C = (
+            sm.from_array(self.const_C, 2, constant=True)
+            if cache.C is None
+            else sm.from_array(cache.C, 2)
+        )
+        d = (
+            sm.from_array(self.const_d, 1, constant=True)
+            if cache.d is None
+            else sm.from_array(cache.d, 1)
+        )
+        return sm.add(sm.matvec(C, x), d), C
+
+
+class NonlinearDynamics:
+    """Dynamics of a :class:`~uimm_jax.models.NonlinearPlant` (EKF, Jacobians by jacfwd).
+
+    Continuous-time plants are integrated with ``plant.substeps`` classical RK4 steps per
+    sample; the EKF Jacobian is that of the whole discrete map.
+    """
+
+    linear = False
+
+    def __init__(self, plant: NonlinearPlant, dt: float, reference_thetas: Any = None):
+        del reference_thetas
+        self.plant = plant
+        self.dt = float(dt)
+        self.n, self.p, self.m = plant.state_dim, plant.input_dim, plant.output_dim
+
+    def step_fn(self, x, u, theta):
+        """Discrete transition ``x[k+1] = F_d(x[k], u[k]; theta)`` for ONE model."""
+        p = self.plant.params(theta)
+        if self.plant.time == "discrete":
+            return jnp.asarray(self.plant.f(x, u, p), x.dtype)
+        h = self.dt / self.plant.substeps
+
+        def rk4(xx, _):
+            k1 = self.plant.f(xx, u, p)
+            k2 = self.plant.f(xx + 0.5 * h * k1, u, p)
+            k3 = self.plant.f(xx + 0.5 * h * k2, u, p)
+            k4 = self.plant.f(xx + h * k3, u, p)
+            return xx + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4), None
+
+        out, _ = jax.lax.scan(rk4, x, None, length=self.plant.substeps)
+        return out
+
+    def obs_fn(self, x, theta):
+        """Measurement ``h(x; theta)`` for ONE model."""
+        return jnp.asarray(self.plant.h(x, self.plant.params(theta)), x.dtype)
+
+    def prepare(self, theta: jax.Array) -> jax.Array:
+        """The cache of a non-linear plant is its parameter array."""
+        return theta
+
+    def _vmapped(self, fn, theta, *args):
+        batch = theta.shape[1:]
+        # Broadcast every argument to the full batch, flatten it and vmap over it.
+        flat_args = []
+        for a in args:
+            a = jnp.broadcast_to(a, a.shape[:1] + batch).reshape(a.shape[0], -1)
+            flat_args.append(a)
+        th = theta.reshape(theta.shape[0], -1)
+        outs = jax.vmap(fn, in_axes=1)(*flat_args, th)
+        res = []
+        for o in outs:
+            o = jnp.moveaxis(o.reshape((o.shape[0],) + o.shape[1:]), 0, -1)
+            res.append(o.reshape(o.shape[:-1] + batch))
+        return res
+
+    def predict(self, theta: jax.Array, x: list, u: list) -> tuple[list, list]:
+        """``x_pred = f(x, u)`` and ``F = df/dx`` at ``x`` (eq. 19)."""
+        batch = theta.shape[1:]
+        dtype = theta.dtype
+        xa = sm.to_array(x, batch, dtype)
+        ua = sm.to_array(u, batch, dtype)
+
+        def fn(xx, uu, th):
+            return self.step_fn(xx, uu, th), jax.jacfwd(self.step_fn)(xx, uu, th)
+
+        xp, F = self._vmapped(fn, theta, xa, ua)
+        return sm.from_array(xp, 1), sm.from_array(F, 2)
+
+    def observe(self, theta: jax.Array, x: list) -> tuple[list, list]:
+        """``y_pred = h(x)`` and ``H = dh/dx`` at the prediction (eq. 20)."""
+        batch = theta.shape[1:]
+        xa = sm.to_array(x, batch, theta.dtype)
+
+        def fn(xx, th):
+            return self.obs_fn(xx, th), jax.jacfwd(self.obs_fn)(xx, th)
+
+        yp, H = self._vmapped(fn, theta, xa)
+        return sm.from_array(yp, 1), sm.from_array(H, 2)
+
+
+def make_dynamics(plant, dt: float, reference_thetas: np.ndarray):
+    """Build the dynamics object that suits ``plant``."""
+    if isinstance(plant, LinearPlant):
+        return LinearDynamics(plant, dt, reference_thetas)
+    if isinstance(plant, NonlinearPlant):
+        return NonlinearDynamics(plant, dt, reference_thetas)
+    raise TypeError(f"expected a LinearPlant or NonlinearPlant, got {type(plant).__name__}")
+
+
+class MatrixBankDynamics(LinearDynamics):
+    """Discrete-time linear bank given directly as matrices (see ``LinearGaussianBank``).
+
+    The cache is a :class:`LinearCache` built by the caller; ``C`` and ``d`` live in it.
+    """
+
+    def __init__(self):  # noqa: D107 - nothing to configure
+        self.const_C = None
+        self.const_d = None
+
+    def prepare(self, theta):  # pragma: no cover - the cache is given, not derived
+        raise NotImplementedError("a matrix bank has no parameters to discretise")

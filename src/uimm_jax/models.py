@@ -1,0 +1,225 @@
+"""Plant models: named parameters, fault tables and the model registry.
+
+A *plant* is what a filter bank is built from: pure functions of the state ``x``,
+the input ``u`` and a named parameter vector ``theta``, plus the nominal parameter
+values and a default *fault library* (fault name -> the parameters it changes and
+their fault values, paper section 3.1).
+
+Two families are supported:
+
+* :class:`LinearPlant` -- ``dx/dt = A(theta) x + B(theta) u`` (or the discrete-time
+  ``x[k+1] = A x[k] + B u[k]``) and ``y = C(theta) x + d(theta)``.  Continuous
+  models are discretised exactly by zero-order hold (matrix exponential of the
+  augmented matrix, see :mod:`uimm_jax.discretize`), so the EKF is the exact KF.
+* :class:`NonlinearPlant` -- ``f(x, u, theta)`` (a discrete map, or a continuous
+  vector field integrated with ``substeps`` classical RK4 steps per sample) and
+  ``h(x, theta)``.  The EKF linearises both with ``jax.jacfwd``.
+
+Users add their own plant without editing the package::
+
+    plant = uimm_jax.LinearPlant(name="my_motor", ..., matrices=my_fn)
+    uimm_jax.register_plant(plant)
+
+after which scenario files can say ``[plant] model = "my_motor"``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping
+from typing import Any, Literal
+
+import numpy as np
+
+__all__ = [
+    "Fault",
+    "LinearPlant",
+    "NonlinearPlant",
+    "Plant",
+    "get_plant",
+    "list_plants",
+    "register_plant",
+]
+
+
+@dataclasses.dataclass(frozen=True)
+class Fault:
+    """One fault of a fault library.
+
+    Attributes:
+        name: identifier used in scenario files and summaries (``valve_wear``).
+        values: parameter name -> value of that parameter when the fault is present.
+        description: one line on the physics, for documentation and plots.
+    """
+
+    name: str
+    values: Mapping[str, float]
+    description: str = ""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _PlantBase:
+    name: str
+    state_names: tuple[str, ...]
+    input_names: tuple[str, ...]
+    output_names: tuple[str, ...]
+    param_names: tuple[str, ...]
+    nominal_values: tuple[float, ...]
+    faults: tuple[Fault, ...] = ()
+    time: Literal["continuous", "discrete"] = "continuous"
+    description: str = ""
+    extra_faults: tuple[Fault, ...] = ()
+
+    def __post_init__(self):
+        if len(self.param_names) != len(self.nominal_values):
+            raise ValueError(
+                f"plant {self.name!r}: param_names has {len(self.param_names)} entries but "
+                f"nominal_values has {len(self.nominal_values)}; give one nominal value per "
+                "parameter."
+            )
+        if len(set(self.param_names)) != len(self.param_names):
+            raise ValueError(f"plant {self.name!r}: parameter names must be unique")
+        if self.time not in ("continuous", "discrete"):
+            raise ValueError(
+                f"plant {self.name!r}: time must be 'continuous' or 'discrete', got {self.time!r}"
+            )
+        for fault in self.faults + self.extra_faults:
+            for p in fault.values:
+                if p not in self.param_names:
+                    raise ValueError(
+                        f"plant {self.name!r}: fault {fault.name!r} names unknown parameter "
+                        f"{p!r}; known parameters: {', '.join(self.param_names)}"
+                    )
+
+    @property
+    def state_dim(self) -> int:
+        """Number of states ``n``."""
+        return len(self.state_names)
+
+    @property
+    def input_dim(self) -> int:
+        """Number of inputs ``p``."""
+        return len(self.input_names)
+
+    @property
+    def output_dim(self) -> int:
+        """Number of measured outputs ``m``."""
+        return len(self.output_names)
+
+    @property
+    def nominal(self) -> dict[str, float]:
+        """Nominal parameter values by name."""
+        return dict(zip(self.param_names, self.nominal_values, strict=True))
+
+    @property
+    def fault_library(self) -> dict[str, Fault]:
+        """Every fault the plant knows (the default library plus the extra ones)."""
+        return {f.name: f for f in self.faults + self.extra_faults}
+
+    def theta(self, overrides: Mapping[str, float] | None = None) -> np.ndarray:
+        """Nominal parameter vector with ``overrides`` applied (names checked)."""
+        th = np.asarray(self.nominal_values, dtype=np.float64).copy()
+        for k, v in (overrides or {}).items():
+            if k not in self.param_names:
+                raise ValueError(
+                    f"unknown parameter {k!r} for plant {self.name!r}; "
+                    f"known parameters: {', '.join(self.param_names)}"
+                )
+            th[self.param_names.index(k)] = float(v)
+        return th
+
+    def params(self, theta: Any) -> dict[str, Any]:
+        """Map a parameter vector (leading axis = parameters) to a name -> value dict."""
+        return {n: theta[i] for i, n in enumerate(self.param_names)}
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class LinearPlant(_PlantBase):
+    """Linear(-affine) plant ``x' = A x + B u``, ``y = C x + d`` with ``theta``-dependent matrices.
+
+    Attributes:
+        matrices: ``matrices(p) -> (A, B, C, d)`` for ONE model, where ``p`` maps parameter
+            names to scalars; shapes ``(n, n)``, ``(n, p)``, ``(m, n)``, ``(m,)``.  For
+            ``time="continuous"`` A and B are the continuous-time matrices (paper eq. 2),
+            discretised by zero-order hold; for ``"discrete"`` they are used as given.
+    """
+
+    matrices: Callable[[Mapping[str, Any]], tuple[Any, Any, Any, Any]] | None = None
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.matrices is None:
+            raise ValueError(f"LinearPlant {self.name!r} needs a matrices(p) function")
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class NonlinearPlant(_PlantBase):
+    """Non-linear plant ``f(x, u, p)``, ``h(x, p)`` for the extended Kalman filter.
+
+    Attributes:
+        f: dynamics for ONE model.  With ``time="discrete"`` it returns ``x[k+1]``; with
+            ``"continuous"`` it returns ``dx/dt`` and is integrated by ``substeps`` classical
+            Runge-Kutta-4 steps per sample (documented integrator; the EKF Jacobian is that
+            of the whole RK4 map, by ``jax.jacfwd``).
+        h: measurement function ``h(x, p) -> y``.
+        substeps: RK4 steps per sample for continuous-time models.
+    """
+
+    f: Callable[[Any, Any, Mapping[str, Any]], Any] | None = None
+    h: Callable[[Any, Mapping[str, Any]], Any] | None = None
+    substeps: int = 1
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.f is None or self.h is None:
+            raise ValueError(f"NonlinearPlant {self.name!r} needs both f and h")
+        if int(self.substeps) < 1:
+            raise ValueError(f"NonlinearPlant {self.name!r}: substeps must be >= 1")
+
+
+Plant = LinearPlant | NonlinearPlant
+
+_REGISTRY: dict[str, Plant] = {}
+
+
+def register_plant(plant: Plant, *, overwrite: bool = False) -> Plant:
+    """Make ``plant`` available to scenario files under ``plant.name``.
+
+    Args:
+        plant: a :class:`LinearPlant` or :class:`NonlinearPlant`.
+        overwrite: replace an existing plant of the same name instead of raising.
+
+    Returns:
+        The plant, so the call can be used as an expression.
+    """
+    if not isinstance(plant, LinearPlant | NonlinearPlant):
+        raise TypeError("register_plant expects a LinearPlant or NonlinearPlant")
+    if plant.name in _REGISTRY and not overwrite:
+        raise ValueError(
+            f"a plant named {plant.name!r} is already registered; pass overwrite=True to replace it"
+        )
+    _REGISTRY[plant.name] = plant
+    return plant
+
+
+def get_plant(name: str) -> Plant:
+    """Look a registered plant up by name, with a helpful error if it is unknown."""
+    _ensure_builtins()
+    try:
+        return _REGISTRY[name]
+    except KeyError:
+        raise ValueError(
+            f"unknown plant model {name!r}; registered models: {', '.join(sorted(_REGISTRY))}. "
+            "Register your own with uimm_jax.register_plant()."
+        ) from None
+
+
+def list_plants() -> list[str]:
+    """Names of all registered plants."""
+    _ensure_builtins()
+    return sorted(_REGISTRY)
+
+
+def _ensure_builtins() -> None:
+    # Imported lazily so that this module stays free of the plant definitions.
+    from uimm_jax import hydraulic_actuator  # noqa: F401

@@ -1,0 +1,667 @@
+"""Figures for multi-fault diagnosis runs (the only module of uimm_jax that imports matplotlib).
+
+Every function takes plain NumPy arrays (or array-likes) and returns a
+:class:`matplotlib.figure.Figure` built with the object API. :mod:`matplotlib.pyplot` is
+never imported, so no backend is selected and no global figure registry is touched:
+figures are garbage-collected like any other object. Save them with :func:`save_figure`.
+
+Long runs hold 1e6 samples (100 s at T = 1e-4 s, design notes section 1). Curves are
+decimated for drawing by :func:`_decimate`: a min/max envelope per bucket for continuous
+signals (peaks and spikes survive) and plain striding for integer mode codes. Summary
+numbers printed on figures (e.g. the recognition rate) are always computed on the full
+arrays.
+
+References:
+    Sun, Wang & Lin, "Multi-Fault Diagnosis Approach Based on Updated Interacting Multiple
+    Model for Aviation Hydraulic Actuator", Information 2020, 11, 410. Figure 4 (model
+    count), Figures 6 and 8 (mode probabilities), Figures 7 and 9 (mode recognition).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+
+__all__ = [
+    "fault_set_name",
+    "plot_confusion",
+    "plot_loss_curve",
+    "plot_mode_probabilities",
+    "plot_mode_recognition",
+    "plot_model_count",
+    "plot_states",
+    "plot_sweep",
+    "save_figure",
+]
+
+_MAX_POINTS = 20000
+_DPI = 120
+_CYCLE = [f"C{i}" for i in range(10)]
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _is_integer_like(a: np.ndarray) -> bool:
+    return np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.bool_)
+
+
+def _decimate(
+    t: np.ndarray, *ys: np.ndarray, max_points: int = _MAX_POINTS
+) -> tuple[np.ndarray, ...]:
+    """Reduce a time series to at most ``max_points`` samples for drawing.
+
+    If ``len(t) <= max_points`` the inputs are returned unchanged (exact). Otherwise:
+
+    * if every ``y`` has an integer or boolean dtype (mode codes), the samples are simply
+      strided: ``t[::s], y[::s]`` with ``s = ceil(N / max_points)``;
+    * else the samples are cut into ``max_points // 2`` buckets of equal length and each
+      bucket contributes two samples, at the bucket's first and last time stamps. For a
+      floating-point ``y`` they hold the bucket's minimum and maximum (column by column
+      for 2-D ``y``), ordered as they occur, so that the drawn line covers the full
+      envelope of the signal and every extreme value survives. An integer ``y`` given
+      together with floating-point ones takes its values at those two time stamps.
+
+    Args:
+        t: Time stamps, shape (N,).
+        *ys: Arrays sharing the leading axis with ``t``, shape (N,) or (N, M).
+        max_points: Upper bound on the number of returned samples (at least 2).
+
+    Returns:
+        ``(t_dec, *ys_dec)``, all with the same leading length ``<= max_points``.
+
+    Raises:
+        ValueError: If an array's leading length differs from ``len(t)`` or
+            ``max_points < 2``.
+    """
+    t = np.asarray(t)
+    ys = tuple(np.asarray(y) for y in ys)
+    n = t.shape[0]
+    for y in ys:
+        if y.shape[:1] != (n,):
+            raise ValueError(f"leading length {y.shape[:1]} does not match len(t) = {n}")
+    if max_points < 2:
+        raise ValueError(f"max_points must be at least 2, got {max_points}")
+    if n <= max_points:
+        return (t, *ys)
+
+    if all(_is_integer_like(y) for y in ys):
+        stride = math.ceil(n / max_points)
+        return (t[::stride], *(y[::stride] for y in ys))
+
+    # Envelope: nb buckets of `size` samples (the last one padded by repeating its
+    # final sample, which changes neither its minimum nor its maximum).
+    size = math.ceil(n / (max_points // 2))
+    nb = math.ceil(n / size)
+    starts = np.arange(nb) * size
+    ends = np.minimum(starts + size, n) - 1
+    t_out = np.stack([t[starts], t[ends]], axis=1).reshape(-1)
+
+    out = [t_out]
+    pad = nb * size - n
+    for y in ys:
+        if _is_integer_like(y):
+            out.append(np.stack([y[starts], y[ends]], axis=1).reshape(-1, *y.shape[1:]))
+            continue
+        yp = np.concatenate([y, np.repeat(y[-1:], pad, axis=0)], axis=0) if pad else y
+        yb = yp.reshape(nb, size, *y.shape[1:])
+        i_min = np.argmin(yb, axis=1)
+        i_max = np.argmax(yb, axis=1)
+        v_min = np.take_along_axis(yb, i_min[:, None], axis=1)[:, 0]
+        v_max = np.take_along_axis(yb, i_max[:, None], axis=1)[:, 0]
+        min_first = i_min <= i_max
+        first = np.where(min_first, v_min, v_max)
+        second = np.where(min_first, v_max, v_min)
+        out.append(np.stack([first, second], axis=1).reshape(-1, *y.shape[1:]))
+    return tuple(out)
+
+
+def fault_set_name(code: int, fault_names: Sequence[str]) -> str:
+    """Name the fault set encoded by a bitmask.
+
+    Args:
+        code: Fault-set bitmask; bit ``j`` set means fault ``j`` is present. A negative
+            code means "undetermined".
+        fault_names: ``fault_names[j]`` names bit ``j``.
+
+    Returns:
+        ``"fault-free"`` for 0, otherwise the present faults joined by ``" + "`` in bit
+        order (e.g. ``"valve_wear + leakage"``); bits without a name are called
+        ``"fault<j>"``.
+    """
+    code = int(code)
+    if code < 0:
+        return "undetermined"
+    if code == 0:
+        return "fault-free"
+    names = []
+    j = 0
+    while code >> j:
+        if (code >> j) & 1:
+            names.append(fault_names[j] if j < len(fault_names) else f"fault{j}")
+        j += 1
+    return " + ".join(names)
+
+
+def _as_2d(a: np.ndarray) -> np.ndarray:
+    a = np.asarray(a)
+    return a[:, None] if a.ndim == 1 else a
+
+
+def _check_t(t: np.ndarray, *arrays: np.ndarray) -> np.ndarray:
+    t = np.asarray(t)
+    if t.ndim != 1:
+        raise ValueError(f"t must be 1-D, got shape {t.shape}")
+    for a in arrays:
+        if np.shape(a)[:1] != t.shape:
+            raise ValueError(f"array of shape {np.shape(a)} does not match t of shape {t.shape}")
+    return t
+
+
+# --------------------------------------------------------------------------- figures
+
+
+def plot_mode_probabilities(
+    t: np.ndarray,
+    mode_probs: np.ndarray,
+    model_labels: Sequence[str],
+    *,
+    events: Sequence[tuple[float, str]] = (),
+    declarations: Sequence[tuple[float, str]] = (),
+    title: str | None = None,
+) -> Figure:
+    """Plot the mode probability of every model in the bank against time.
+
+    Reproduces paper Figures 6 (simulation 1) and 8 (simulation 2): one line per model,
+    with y in [0, 1]. True fault onsets are drawn as dashed vertical lines and fault
+    declarations of the estimator as solid vertical lines topped by a triangle; both
+    take the colour of the model whose label equals the fault name, or black.
+
+    Args:
+        t: Time stamps in seconds, shape (N,).
+        mode_probs: Mode probabilities, shape (N, M).
+        model_labels: Name of each of the M models (legend entries).
+        events: True fault onsets as ``(time, fault_name)`` pairs.
+        declarations: Declarations as ``(time, fault_name)`` pairs.
+        title: Figure title; a default is used when None.
+
+    Returns:
+        The figure (one axes).
+    """
+    mode_probs = _as_2d(mode_probs)
+    t = _check_t(t, mode_probs)
+    m = mode_probs.shape[1]
+    if len(model_labels) != m:
+        raise ValueError(f"{len(model_labels)} model labels for {m} models")
+    colour = {label: _CYCLE[j % len(_CYCLE)] for j, label in enumerate(model_labels)}
+
+    td, pd = _decimate(t, np.asarray(mode_probs, dtype=float))
+    fig = Figure(figsize=(9.0, 4.2), layout="constrained")
+    ax = fig.add_subplot()
+    for j, label in enumerate(model_labels):
+        ax.plot(td, pd[:, j], color=colour[label], lw=1.1, label=str(label))
+
+    for time, name in events:
+        ax.axvline(time, color=colour.get(name, "k"), ls="--", lw=1.2, alpha=0.9)
+        ax.annotate(
+            f"{name} onset",
+            (time, 1.0),
+            xycoords=("data", "axes fraction"),
+            xytext=(3, -3),
+            textcoords="offset points",
+            rotation=90,
+            va="top",
+            fontsize=8,
+            color=colour.get(name, "k"),
+        )
+    for time, name in declarations:
+        c = colour.get(name, "k")
+        ax.axvline(time, color=c, ls="-", lw=1.6, alpha=0.8)
+        ax.plot([time], [1.04], marker="v", ms=8, color=c, clip_on=False)
+
+    handles, labels = ax.get_legend_handles_labels()
+    if events:
+        handles.append(Line2D([], [], color="k", ls="--", lw=1.2))
+        labels.append("true fault onset")
+    if declarations:
+        handles.append(Line2D([], [], color="k", ls="-", lw=1.6, marker="v", ms=6))
+        labels.append("declaration")
+    ax.legend(handles, labels, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9)
+    ax.set_ylim(-0.02, 1.08)
+    if len(t):
+        ax.set_xlim(t[0], t[-1])
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("mode probability")
+    ax.grid(True, alpha=0.3)
+    ax.set_title(title if title is not None else "Mode probabilities (cf. paper Figs. 6/8)")
+    return fig
+
+
+def plot_mode_recognition(
+    t: np.ndarray,
+    recognised: np.ndarray,
+    truth: np.ndarray,
+    fault_names: Sequence[str],
+    *,
+    title: str | None = None,
+) -> Figure:
+    """Plot the recognised fault set against the true one on a categorical axis.
+
+    Reproduces paper Figures 7 (simulation 1) and 9 (simulation 2). The y axis lists only
+    the fault sets that occur in either array, ordered by number of faults and then by
+    code, labelled by :func:`fault_set_name`. The truth is a step line; the recognised
+    set is drawn as dots (strided when long) and samples where it disagrees with the
+    truth as red crosses (drawn from the full arrays, strided only if very many). The
+    fraction of agreeing samples, over all N samples, is written in the axes.
+
+    Args:
+        t: Time stamps in seconds, shape (N,).
+        recognised: Recognised fault-set bitmasks, int array of shape (N,).
+        truth: True fault-set bitmasks, int array of shape (N,).
+        fault_names: ``fault_names[j]`` names bit ``j``.
+        title: Figure title; a default is used when None.
+
+    Returns:
+        The figure (one axes).
+    """
+    recognised = np.asarray(recognised).astype(np.int64)
+    truth = np.asarray(truth).astype(np.int64)
+    t = _check_t(t, recognised, truth)
+
+    codes = sorted(
+        set(np.unique(recognised).tolist()) | set(np.unique(truth).tolist()),
+        key=lambda c: (c < 0, int(c).bit_count() if c >= 0 else 0, c),
+    )
+    keys = np.array(codes, dtype=np.int64)
+    rec_cat = _map_codes(recognised, keys)
+    truth_cat = _map_codes(truth, keys)
+    agree = recognised == truth
+    rate = float(agree.mean()) if agree.size else float("nan")
+
+    fig = Figure(figsize=(9.0, 1.6 + 0.45 * len(codes)), layout="constrained")
+    ax = fig.add_subplot()
+
+    # Truth: exact step line through its change points only.
+    if len(t):
+        change = np.flatnonzero(np.diff(truth_cat)) + 1
+        idx = np.concatenate([[0], change])
+        ts = np.append(t[idx], t[-1])
+        ys = np.append(truth_cat[idx], truth_cat[-1])
+        ax.step(ts, ys, where="post", color="k", lw=2.0, label="true mode", zorder=2)
+
+    td, rd = _decimate(t, rec_cat)
+    ax.plot(td, rd, ls="none", marker=".", ms=3, color="C0", label="recognised", zorder=3)
+    bad = np.flatnonzero(~agree)
+    if bad.size:
+        bad = bad[:: math.ceil(bad.size / _MAX_POINTS)]
+        ax.plot(
+            t[bad],
+            rec_cat[bad],
+            ls="none",
+            marker="x",
+            ms=4,
+            color="C3",
+            label="misrecognised",
+            zorder=4,
+        )
+
+    ax.set_yticks(range(len(codes)), [fault_set_name(c, fault_names) for c in codes])
+    ax.set_ylim(-0.6, len(codes) - 0.4)
+    if len(t):
+        ax.set_xlim(t[0], t[-1])
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("fault set")
+    ax.grid(True, axis="x", alpha=0.3)
+    ax.text(
+        0.99,
+        0.03,
+        f"agreement: {100 * rate:.2f} % of {agree.size} samples",
+        transform=ax.transAxes,
+        ha="right",
+        va="bottom",
+        fontsize=9,
+        bbox={"boxstyle": "round", "fc": "white", "ec": "0.7", "alpha": 0.9},
+    )
+    ax.legend(loc="upper left", fontsize=9)
+    ax.set_title(title if title is not None else "Mode recognition (cf. paper Figs. 7/9)")
+    return fig
+
+
+def _map_codes(a: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """Return, for every entry of ``a``, its position in ``keys`` (which must contain it)."""
+    order = np.argsort(keys, kind="stable")
+    pos = np.searchsorted(keys[order], a)
+    return order[pos]
+
+
+def plot_states(
+    t: np.ndarray,
+    x_true: np.ndarray,
+    x_est: np.ndarray,
+    state_names: Sequence[str],
+    *,
+    units: Sequence[str] | None = None,
+    residuals: bool = True,
+    title: str | None = None,
+) -> Figure:
+    """Plot true and estimated states, one panel per state.
+
+    The paper shows no state figure; this one checks the combined estimate of the bank
+    (paper eq. 30) against the simulated truth. Each state gets a main panel and, when
+    ``residuals`` is true, a small panel below it with the estimation error
+    ``x_est - x_true``.
+
+    Args:
+        t: Time stamps in seconds, shape (N,).
+        x_true: True states, shape (N, S).
+        x_est: Estimated states, shape (N, S).
+        state_names: Name of each of the S states.
+        units: Unit of each state (e.g. ``["m", "m/s", "Pa"]``), or None.
+        residuals: Whether to add an error panel under each state.
+        title: Figure title; a default is used when None.
+
+    Returns:
+        The figure (S or 2 S axes sharing the time axis).
+    """
+    x_true = _as_2d(np.asarray(x_true, dtype=float))
+    x_est = _as_2d(np.asarray(x_est, dtype=float))
+    t = _check_t(t, x_true, x_est)
+    if x_true.shape != x_est.shape:
+        raise ValueError(f"x_true {x_true.shape} and x_est {x_est.shape} differ in shape")
+    s = x_true.shape[1]
+    if len(state_names) != s:
+        raise ValueError(f"{len(state_names)} state names for {s} states")
+    if units is not None and len(units) != s:
+        raise ValueError(f"{len(units)} units for {s} states")
+
+    td, xt, xe, err = _decimate(t, x_true, x_est, x_est - x_true)
+    rows_per_state = 2 if residuals else 1
+    ratios = [3, 1] * s if residuals else [1] * s
+    fig = Figure(figsize=(9.0, (2.6 if residuals else 2.0) * s + 0.6), layout="constrained")
+    gs = fig.add_gridspec(rows_per_state * s, 1, height_ratios=ratios)
+    first = None
+    axes = []
+    for k in range(s):
+        unit = f" ({units[k]})" if units is not None and units[k] else ""
+        ax = fig.add_subplot(gs[rows_per_state * k], sharex=first)
+        first = first or ax
+        ax.plot(td, xt[:, k], color="k", lw=1.4, label="true")
+        ax.plot(td, xe[:, k], color="C1", lw=1.0, ls="--", label="estimate")
+        ax.set_ylabel(f"{state_names[k]}{unit}")
+        ax.grid(True, alpha=0.3)
+        if k == 0:
+            ax.legend(loc="upper right", fontsize=9)
+        axes.append(ax)
+        if residuals:
+            axr = fig.add_subplot(gs[rows_per_state * k + 1], sharex=first)
+            axr.plot(td, err[:, k], color="C3", lw=0.8)
+            axr.axhline(0.0, color="0.5", lw=0.6)
+            axr.set_ylabel("error", fontsize=8)
+            axr.tick_params(labelsize=8)
+            axr.grid(True, alpha=0.3)
+            axes.append(axr)
+    for ax in axes[:-1]:
+        ax.tick_params(labelbottom=False)
+    axes[-1].set_xlabel("time (s)")
+    if len(t):
+        axes[-1].set_xlim(t[0], t[-1])
+    fig.suptitle(title if title is not None else "True and estimated states")
+    return fig
+
+
+def plot_model_count(
+    max_faults: int = 10,
+    *,
+    measured: Mapping[str, Sequence[float]] | None = None,
+    title: str | None = None,
+) -> Figure:
+    """Plot the number of models needed by IMM and UIMM against the number of faults.
+
+    Reproduces paper Figure 4: a combinatorial IMM needs one model per fault set, 2**F,
+    whereas the UIMM keeps F + 1 (paper section 3.3). With ``measured`` a second panel
+    shows the measured cost per filter step.
+
+    Args:
+        max_faults: Largest number of faults F; F runs over 1..max_faults.
+        measured: Optional timings with keys ``"F"``, ``"imm_us"`` and ``"uimm_us"``
+            (equal-length sequences, microseconds per step; NaN where not run).
+        title: Optional figure title above the panels.
+
+    Returns:
+        The figure (one axes, or two side by side with ``measured``).
+    """
+    if max_faults < 1:
+        raise ValueError(f"max_faults must be at least 1, got {max_faults}")
+    f = np.arange(1, max_faults + 1)
+    ncols = 2 if measured is not None else 1
+    fig = Figure(figsize=(5.0 * ncols + 0.5, 4.0), layout="constrained")
+    ax = fig.add_subplot(1, ncols, 1)
+    ax.semilogy(f, 2.0**f, "o-", color="C3", label="IMM: $2^F$")
+    ax.semilogy(f, f + 1.0, "s-", color="C0", label="UIMM: $F+1$")
+    ax.set_xticks(f)
+    ax.set_xlabel("number of faults F")
+    ax.set_ylabel("number of models")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    ax.set_title("Models required (cf. paper Fig. 4)")
+
+    if measured is not None:
+        fm = np.asarray(measured["F"], dtype=float)
+        ax2 = fig.add_subplot(1, 2, 2)
+        for key, label, style, c in (
+            ("imm_us", "IMM", "o-", "C3"),
+            ("uimm_us", "UIMM", "s-", "C0"),
+        ):
+            if key not in measured:
+                continue
+            v = np.asarray(measured[key], dtype=float)
+            if v.shape != fm.shape:
+                raise ValueError(f"measured[{key!r}] has shape {v.shape}, F has {fm.shape}")
+            ok = np.isfinite(v) & (v > 0)
+            if ok.any():
+                ax2.plot(fm[ok], v[ok], style, color=c, label=label)
+        ax2.set_yscale("log")
+        ax2.set_xticks(np.unique(fm[np.isfinite(fm)]))
+        ax2.set_xlabel("number of faults F")
+        ax2.set_ylabel("time per step (µs)")
+        ax2.grid(True, which="both", alpha=0.3)
+        if ax2.get_legend_handles_labels()[0]:
+            ax2.legend()
+        ax2.set_title("Measured cost per step")
+    if title is not None:
+        fig.suptitle(title)
+    return fig
+
+
+def plot_sweep(cells: Sequence[Mapping], *, title: str | None = None) -> Figure:
+    """Plot Monte Carlo detection performance against fault magnitude.
+
+    Left panel: detection probability per fault and method, with confidence-interval
+    error bars when a cell gives ``"detection_probability_ci"``. Right panel: median
+    detection delay (cells where it is None are skipped). Colour encodes the fault,
+    line style and marker the method. The paper has no such figure; it extends the
+    single runs of Figs. 6-9 to many seeds and fault magnitudes.
+
+    Args:
+        cells: One dict per (method, magnitude) cell with keys ``"method"`` (str),
+            ``"magnitude"`` (float), ``"detection_probability"`` (fault -> float),
+            optionally ``"detection_probability_ci"`` (fault -> [lo, hi]) and
+            ``"median_delay_s"`` (fault -> float or None).
+        title: Figure title; a default is used when None.
+
+    Returns:
+        The figure (two axes side by side).
+    """
+    methods: list[str] = []
+    faults: list[str] = []
+    for cell in cells:
+        if cell["method"] not in methods:
+            methods.append(cell["method"])
+        for fault in cell["detection_probability"]:
+            if fault not in faults:
+                faults.append(fault)
+    markers = ["o", "s", "^", "D", "v", "P", "X"]
+    styles = ["-", "--", ":", "-."]
+
+    fig = Figure(figsize=(11.0, 4.3), layout="constrained")
+    ax_p, ax_d = fig.subplots(1, 2)
+    delays_all = []
+    for mi, method in enumerate(methods):
+        mcells = sorted((c for c in cells if c["method"] == method), key=lambda c: c["magnitude"])
+        for fi, fault in enumerate(faults):
+            style = {
+                "color": _CYCLE[fi % len(_CYCLE)],
+                "ls": styles[mi % len(styles)],
+                "marker": markers[mi % len(markers)],
+                "ms": 5,
+                "label": f"{fault} / {method}",
+            }
+            mag, p, lo, hi, dmag, dly = [], [], [], [], [], []
+            for c in mcells:
+                if fault in c["detection_probability"]:
+                    pv = float(c["detection_probability"][fault])
+                    mag.append(float(c["magnitude"]))
+                    p.append(pv)
+                    ci = (c.get("detection_probability_ci") or {}).get(fault)
+                    lo.append(pv - float(ci[0]) if ci is not None else np.nan)
+                    hi.append(float(ci[1]) - pv if ci is not None else np.nan)
+                d = (c.get("median_delay_s") or {}).get(fault)
+                if d is not None and np.isfinite(d):
+                    dmag.append(float(c["magnitude"]))
+                    dly.append(float(d))
+            if mag:
+                yerr = np.clip(np.array([lo, hi]), 0.0, None)
+                if np.isnan(yerr).all():
+                    ax_p.plot(mag, p, **style)
+                else:
+                    ax_p.errorbar(mag, p, yerr=np.nan_to_num(yerr), capsize=3, **style)
+            if dmag:
+                ax_d.plot(dmag, dly, **style)
+                delays_all.extend(dly)
+
+    ax_p.set_ylim(-0.03, 1.03)
+    ax_p.set_xlabel("fault magnitude")
+    ax_p.set_ylabel("detection probability")
+    ax_p.grid(True, alpha=0.3)
+    ax_p.set_title("Detection probability")
+    ax_d.set_xlabel("fault magnitude")
+    ax_d.set_ylabel("median detection delay (s)")
+    ax_d.grid(True, which="both", alpha=0.3)
+    ax_d.set_title("Median detection delay")
+    pos = [d for d in delays_all if d > 0]
+    if pos and len(pos) == len(delays_all) and max(pos) / min(pos) > 50:
+        ax_d.set_yscale("log")
+    if ax_p.get_legend_handles_labels()[0]:
+        ax_p.legend(fontsize=8)
+    fig.suptitle(title if title is not None else "Monte Carlo sweep over fault magnitude")
+    return fig
+
+
+def plot_confusion(
+    matrix: np.ndarray,
+    row_labels: Sequence[str],
+    col_labels: Sequence[str],
+    *,
+    title: str | None = None,
+) -> Figure:
+    """Plot a confusion matrix (true fault x declared fault) as an annotated heat map.
+
+    Args:
+        matrix: Counts (or rates), shape (R, C); rows are true faults, columns declared.
+        row_labels: The R true-fault names.
+        col_labels: The C declared-fault names.
+        title: Figure title; a default is used when None.
+
+    Returns:
+        The figure (heat map plus colour bar).
+    """
+    matrix = np.asarray(matrix)
+    if matrix.ndim != 2:
+        raise ValueError(f"matrix must be 2-D, got shape {matrix.shape}")
+    r, c = matrix.shape
+    if len(row_labels) != r or len(col_labels) != c:
+        raise ValueError(f"{len(row_labels)} x {len(col_labels)} labels for a {r} x {c} matrix")
+    values = matrix.astype(float)
+    fig = Figure(figsize=(1.2 + 1.1 * c + 1.5, 1.2 + 0.7 * r + 0.8), layout="constrained")
+    ax = fig.add_subplot()
+    im = ax.imshow(values, cmap="Blues", vmin=0.0, aspect="auto")
+    fig.colorbar(im, ax=ax, shrink=0.9)
+    finite = values[np.isfinite(values)]
+    vmax = float(finite.max()) if finite.size else 0.0
+    integral = np.all(np.isfinite(values)) and np.allclose(values, np.round(values))
+    for i in range(r):
+        for j in range(c):
+            v = values[i, j]
+            text = f"{int(round(v))}" if integral else f"{v:.3g}"
+            colour = "white" if vmax > 0 and v > 0.5 * vmax else "black"
+            ax.text(j, i, text, ha="center", va="center", color=colour, fontsize=10)
+    ax.set_xticks(range(c), list(col_labels), rotation=30, ha="right")
+    ax.set_yticks(range(r), list(row_labels))
+    ax.set_xlabel("declared fault")
+    ax.set_ylabel("true fault")
+    ax.set_title(title if title is not None else "Confusion matrix")
+    return fig
+
+
+def plot_loss_curve(
+    history: np.ndarray | Mapping[str, np.ndarray], *, title: str | None = None
+) -> Figure:
+    """Plot a tuning loss against the optimiser iteration.
+
+    Args:
+        history: Loss per iteration, shape (K,), or a mapping from a curve name (e.g.
+            ``"train"``, ``"validation"``) to such an array.
+        title: Figure title; a default is used when None.
+
+    Returns:
+        The figure (one axes; log y scale when the loss is positive and spans more
+        than two decades).
+    """
+    curves = (
+        {str(k): np.asarray(v, dtype=float) for k, v in history.items()}
+        if isinstance(history, Mapping)
+        else {"loss": np.asarray(history, dtype=float)}
+    )
+    fig = Figure(figsize=(6.5, 4.0), layout="constrained")
+    ax = fig.add_subplot()
+    finite = []
+    for name, loss in curves.items():
+        it, ld = _decimate(np.arange(loss.shape[0]), loss)
+        ax.plot(it, ld, lw=1.2, label=name)
+        finite.append(loss[np.isfinite(loss)])
+    allv = np.concatenate(finite) if finite else np.zeros(0)
+    if allv.size and allv.min() > 0 and allv.max() / allv.min() > 100:
+        ax.set_yscale("log")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("loss")
+    ax.grid(True, which="both", alpha=0.3)
+    if len(curves) > 1:
+        ax.legend()
+    ax.set_title(title if title is not None else "Tuning loss")
+    return fig
+
+
+def save_figure(fig: Figure, path: str | os.PathLike) -> Path:
+    """Save a figure at 120 dpi, creating the parent directories.
+
+    The format follows the file suffix (``.png``, ``.pdf``, ``.svg``...). Nothing is
+    closed: figures built here are not registered with pyplot, so dropping the last
+    reference frees them.
+
+    Args:
+        fig: The figure to save.
+        path: Destination file.
+
+    Returns:
+        The destination as a :class:`pathlib.Path`.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=_DPI)
+    return path

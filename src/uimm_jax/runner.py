@@ -1,0 +1,450 @@
+"""From a scenario to a diagnosis: build the bank, simulate the truth, filter, summarise.
+
+* :func:`setup_scenario` builds (and caches) the diagnoser, its parameters and the truth
+  plan from a :class:`~uimm_jax.scenarios.Scenario`.
+* :func:`simulate_scenario` runs the truth (one ``lax.scan``, chunked).
+* :func:`filter_measurements` runs the diagnoser over measurements (one ``lax.scan``,
+  chunked) -- simulated ones or a user's own data.
+* :func:`run_scenario` does both and returns a :class:`RunResult` with a summary dict.
+
+Time convention: sample k is taken at ``t_k = (k + 1) dt``; the input ``u_k = u(k dt)`` is
+held over ``[k dt, (k+1) dt)``; an event at time ``T`` acts from step ``round(T / dt)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+import warnings
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from uimm_jax.bank import FaultTable, fault_table
+from uimm_jax.dynamics import make_dynamics
+from uimm_jax.errors import UIMMWarning
+from uimm_jax.filtering import scan_chunked
+from uimm_jax.simulate import InputSignal, TruthPlan, input_value, noise_factor, truth_step
+from uimm_jax.uimm import Diagnoser, DiagParams, build_diagnoser, make_params
+
+__all__ = [
+    "RunResult",
+    "RunSetup",
+    "filter_measurements",
+    "run_scenario",
+    "setup_scenario",
+    "simulate_scenario",
+    "summarize",
+]
+
+DEFAULT_CHUNK = 100_000
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class RunSetup:
+    """A scenario compiled into engine objects.
+
+    Attributes:
+        scenario: the source scenario.
+        method: ``"uimm"`` or ``"imm"``.
+        diagnoser: the :class:`~uimm_jax.uimm.Diagnoser` (static).
+        params: its :class:`~uimm_jax.uimm.DiagParams`.
+        init_state: initial diagnoser state (one run).
+        signal: the :class:`~uimm_jax.simulate.InputSignal`.
+        plan: the truth :class:`~uimm_jax.simulate.TruthPlan`.
+        table: the fault table of the bank.
+        event_steps: step of each truth event.
+        transition: the host transition matrix used.
+        initial_mode_probs: the host initial mode probabilities used.
+    """
+
+    scenario: Any
+    method: str
+    diagnoser: Diagnoser
+    params: DiagParams
+    init_state: Any
+    signal: InputSignal
+    plan: TruthPlan
+    table: FaultTable
+    event_steps: np.ndarray
+    transition: np.ndarray
+    initial_mode_probs: np.ndarray
+
+
+@functools.lru_cache(maxsize=64)
+def _cached_diagnoser(plant, dt, method, gate, faults_key, nominal_key):
+    nominal = np.asarray(nominal_key)
+    table = fault_table(plant.param_names, nominal, {k: dict(v) for k, v in faults_key})
+    refs = [nominal] + [
+        table.theta_numpy(np.eye(table.num_faults, dtype=bool)[j]) for j in range(table.num_faults)
+    ]
+    dyn = make_dynamics(plant, dt, np.array(refs))
+    return build_diagnoser(method, dyn, table, gate=gate), table
+
+
+def resolve_filter_settings(scenario, method: str) -> tuple[np.ndarray, np.ndarray]:
+    """Transition matrix and initial mode probabilities for ``method``.
+
+    When ``method`` is not the scenario's own and the scenario gives them in full for
+    its own method, they are adapted with a warning: the stay probability becomes the
+    mean of the given diagonal and model 0 keeps the given first probability, the rest
+    being shared equally.
+    """
+    flt = scenario.filter
+    M = scenario.num_models(method)
+    if method == flt.method or flt.transition is None:
+        P = scenario.transition_matrix(method)
+    else:
+        stay = float(np.mean(np.diag(flt.transition)))
+        warnings.warn(
+            f"[filter].transition is written for {flt.method!r}; for {method!r} "
+            f"({M} models) the stay probability {stay:.6g} (its mean diagonal) is "
+            "used",
+            UIMMWarning,
+            stacklevel=3,
+        )
+        P = np.full((M, M), (1 - stay) / max(M - 1, 1))
+        np.fill_diagonal(P, stay)
+    if method == flt.method or flt.initial_mode_probs is None:
+        mu0 = scenario.initial_mode_probs(method)
+    else:
+        p0 = float(flt.initial_mode_probs[0])
+        mu0 = np.full(M, (1 - p0) / max(M - 1, 1))
+        mu0[0] = p0
+        warnings.warn(
+            f"[filter].initial_mode_probs is written for {flt.method!r}; for "
+            f"{method!r} model 0 keeps {p0:.6g} and the rest is shared equally",
+            UIMMWarning,
+            stacklevel=3,
+        )
+    return P, mu0
+
+
+def setup_scenario(
+    scenario, method: str | None = None, *, dtype=None, magnitude_scale: float = 1.0
+) -> RunSetup:
+    """Compile a scenario into a :class:`RunSetup` (diagnoser cached across calls).
+
+    Args:
+        scenario: a :class:`~uimm_jax.scenarios.Scenario`.
+        method: ``"uimm"`` or ``"imm"``; default: the scenario's.
+        dtype: float dtype (default: JAX's default float; float64 with x64 enabled).
+        magnitude_scale: multiplies every event's magnitude (truth only).
+    """
+    dtype = dtype or jnp.asarray(0.0).dtype
+    method = method or scenario.filter.method
+    plant = scenario.plant
+    nominal = plant.theta(scenario.plant_params)
+    faults_key = tuple((k, tuple(sorted(v.items()))) for k, v in scenario.faults.items())
+    gate = scenario.filter.gate
+    diag, table = _cached_diagnoser(
+        plant, float(scenario.dt), method, gate, faults_key, tuple(nominal.tolist())
+    )
+    P, mu0 = resolve_filter_settings(scenario, method)
+    flt = scenario.filter
+    params = make_params(
+        P,
+        scenario.process_noise,
+        scenario.measurement_noise,
+        flt.decision.threshold,
+        flt.decision.hold,
+        dtype,
+    )
+    init = diag.init(np.asarray(flt.initial_mean), np.asarray(flt.initial_cov), mu0, (), dtype)
+    # Truth plan: phase 0 nominal, then one phase per event (faults accumulate).
+    names = table.names
+    present = np.zeros(len(names), bool)
+    mags = np.ones(len(names))
+    thetas = [table.nominal.copy()]
+    codes = [0]
+    steps = []
+    for ev in scenario.events:
+        j = names.index(ev.fault)
+        present[j] = True
+        mags[j] = ev.magnitude * magnitude_scale
+        thetas.append(table.theta_numpy(present, mags))
+        codes.append(int(np.sum(present * (1 << np.arange(len(names))))))
+        steps.append(int(round(ev.time / scenario.dt)))
+    th = jnp.asarray(np.array(thetas).T, dtype)  # (P, K)
+    plan = TruthPlan(
+        cache=diag.dyn.prepare(th),
+        event_steps=jnp.asarray(np.array(steps, np.int32).reshape(-1)),
+        true_codes=jnp.asarray(np.array(codes, np.int32)),
+        Gq=jnp.asarray(noise_factor(scenario.process_noise), dtype),
+        Gr=jnp.asarray(noise_factor(scenario.measurement_noise), dtype),
+    )
+    return RunSetup(
+        scenario,
+        method,
+        diag,
+        params,
+        init,
+        InputSignal.from_spec(scenario.input, dtype),
+        plan,
+        table,
+        np.array(steps, np.int64),
+        P,
+        mu0,
+    )
+
+
+# --------------------------------------------------------------------------------------
+# Time loops (module-level jitted chunk functions: cached across calls)
+# --------------------------------------------------------------------------------------
+
+
+@functools.partial(jax.jit, static_argnames=("dyn", "dt", "p"))
+def _sim_chunk(dyn, plan, signal, key, x, k0, ks, dt, p):
+    del k0
+
+    def body(xc, k):
+        t = k.astype(x.dtype) * dt
+        u = jnp.full((p,), input_value(signal, t), x.dtype)
+        xn, y, code = truth_step(dyn, plan, xc, k, u, key)
+        return xn, (u, xn, y, code)
+
+    return jax.lax.scan(body, x, ks)
+
+
+@functools.partial(jax.jit, static_argnames=("diag", "with_cov"))
+def _filter_chunk(diag, params, state, k0, uy, with_cov):
+    del k0
+
+    def body(st, uy_k):
+        u, y = uy_k
+        st, info = diag.step(st, params, u, y, with_cov=with_cov)
+        out = (
+            jnp.exp(info.step.log_mode_probs),
+            info.step.mean,
+            info.recognised,
+            info.declared,
+            info.step.health,
+        )
+        if with_cov:
+            out = out + (info.step.cov,)
+        return st, out
+
+    return jax.lax.scan(body, state, uy)
+
+
+def scenario_inputs(scenario, num_steps: int | None = None, dtype=None) -> np.ndarray:
+    """The input sequence ``u_k = u(k dt)`` of a scenario, ``(N, p)`` on the host."""
+    num_steps = scenario.num_steps if num_steps is None else num_steps
+    t = np.arange(num_steps) * float(scenario.dt)
+    sig = InputSignal.from_spec(scenario.input, jnp.float64)
+    with jax.default_device(jax.devices("cpu")[0]):
+        u = np.asarray(input_value(sig, jnp.asarray(t)))
+    return np.repeat(u[:, None], scenario.plant.input_dim, axis=1).astype(dtype or np.float64)
+
+
+def simulate_scenario(
+    setup: RunSetup,
+    seed: int | None = None,
+    *,
+    chunk: int = DEFAULT_CHUNK,
+    progress: Callable | None = None,
+) -> dict[str, np.ndarray]:
+    """Simulate the truth of a scenario.
+
+    Returns:
+        dict with ``u`` (N, p), ``x`` (N, n), ``y`` (N, m), ``truth`` (N,) fault-set codes
+        and ``t`` (N,) sample times.
+    """
+    sc = setup.scenario
+    seed = sc.seed if seed is None else int(seed)
+    key = jax.random.PRNGKey(seed)
+    n = sc.plant.state_dim
+    p = sc.plant.input_dim
+    dtype = setup.params.imm.Q.dtype
+    x0 = jnp.zeros((n,), dtype)
+    dyn = setup.diagnoser.dyn
+    run = lambda c, k0, ks: _sim_chunk(
+        dyn, setup.plan, setup.signal, key, c, k0, ks, float(sc.dt), p
+    )
+    _, (u, x, y, code) = scan_chunked(run, x0, sc.num_steps, chunk=chunk, progress=progress)
+    t = (np.arange(sc.num_steps) + 1) * sc.dt
+    return {"u": u, "x": x, "y": y, "truth": code, "t": t}
+
+
+def filter_measurements(
+    setup: RunSetup,
+    y,
+    u=None,
+    *,
+    chunk: int = DEFAULT_CHUNK,
+    with_cov: bool = False,
+    progress: Callable | None = None,
+):
+    """Run the scenario's diagnoser over measurements ``y`` (N, m) and inputs ``u`` (N, p).
+
+    ``u`` defaults to the scenario's input signal.
+
+    Returns:
+        ``(final_state, outputs)`` with outputs a dict of per-step NumPy arrays:
+        ``mode_probs`` (N, M), ``mean`` (N, n), ``recognised`` (N,), ``declared`` (N,),
+        ``health`` (N,) and, with ``with_cov``, ``cov`` (N, n, n).
+    """
+    sc = setup.scenario
+    dtype = setup.params.imm.Q.dtype
+    ys = jnp.asarray(y, dtype)
+    N = ys.shape[0]
+    us = jnp.asarray(scenario_inputs(sc, N) if u is None else u, dtype)
+    run = lambda c, k0, uy: _filter_chunk(setup.diagnoser, setup.params, c, k0, uy, with_cov)
+    final, out = scan_chunked(run, setup.init_state, N, chunk=chunk, xs=(us, ys), progress=progress)
+    keys = ["mode_probs", "mean", "recognised", "declared", "health"] + (
+        ["cov"] if with_cov else []
+    )
+    return final, dict(zip(keys, out, strict=True))
+
+
+@dataclasses.dataclass
+class RunResult:
+    """Everything a scenario run produced.
+
+    Attributes:
+        setup: the :class:`RunSetup`.
+        truth: output of :func:`simulate_scenario`.
+        outputs: per-step filter outputs (see :func:`filter_measurements`).
+        summary: the machine-readable summary (:func:`summarize`).
+    """
+
+    setup: RunSetup
+    truth: dict[str, np.ndarray]
+    outputs: dict[str, np.ndarray]
+    summary: dict[str, Any]
+
+
+def run_scenario(
+    scenario,
+    method: str | None = None,
+    seed: int | None = None,
+    *,
+    chunk: int = DEFAULT_CHUNK,
+    progress: Callable | None = None,
+    measurements=None,
+) -> RunResult:
+    """Simulate a scenario's truth and diagnose it (or diagnose given measurements).
+
+    Args:
+        scenario: the :class:`~uimm_jax.scenarios.Scenario`.
+        method: ``"uimm"`` or ``"imm"``; default: the scenario's.
+        seed: PRNG seed of the truth noise; default: the scenario's.
+        chunk: steps per compiled chunk (progress granularity and memory bound).
+        progress: optional ``(stage, done, total, elapsed)`` callback.
+        measurements: optional ``(N, m)`` measured data to diagnose instead of simulating
+            (the truth fields of the summary then follow the scenario's events).
+
+    Returns:
+        A :class:`RunResult`.
+    """
+    setup = setup_scenario(scenario, method)
+    cb = (
+        (lambda stage: lambda d, t, e: progress(stage, d, t, e))
+        if progress
+        else (lambda stage: None)
+    )
+    t0 = time.perf_counter()
+    truth = simulate_scenario(setup, seed, chunk=chunk, progress=cb("simulate"))
+    t_sim = time.perf_counter() - t0
+    y = truth["y"] if measurements is None else np.asarray(measurements, np.float64)
+    t1 = time.perf_counter()
+    _, outputs = filter_measurements(setup, y, truth["u"], chunk=chunk, progress=cb("filter"))
+    t_filter = time.perf_counter() - t1
+    summary = summarize(
+        setup,
+        truth["truth"],
+        outputs,
+        runtime_s=t_filter,
+        sim_runtime_s=t_sim,
+        seed=scenario.seed if seed is None else int(seed),
+    )
+    return RunResult(setup, truth, outputs, summary)
+
+
+def _declaration_list(declared: np.ndarray, names, dt) -> list[dict]:
+    out = []
+    prev = np.concatenate([[0], declared[:-1]])
+    for k in np.flatnonzero(declared != prev):
+        new = int(declared[k]) & ~int(prev[k])
+        for j, name in enumerate(names):
+            if new >> j & 1:
+                out.append({"fault": name, "time": float((k + 1) * dt), "step": int(k)})
+    return out
+
+
+def summarize(
+    setup: RunSetup,
+    truth_codes: np.ndarray,
+    outputs: dict,
+    *,
+    runtime_s: float,
+    sim_runtime_s: float | None = None,
+    seed: int | None = None,
+) -> dict[str, Any]:
+    """The machine-readable summary of one run (written as ``summary.json`` by the CLI).
+
+    A declaration of fault j at step k is *correct* when fault j is present in the truth at
+    step k, otherwise it is a *false declaration*.  ``detection_delay_s[f]`` is the time
+    from the event of f to its first correct declaration (``None`` if never declared).
+    ``mode_accuracy`` is the fraction of samples whose recognised fault set equals the true
+    one.
+    """
+    sc = setup.scenario
+    names = list(setup.table.names)
+    dt = float(sc.dt)
+    N = int(truth_codes.shape[0])
+    decl = _declaration_list(np.asarray(outputs["declared"]), names, dt)
+    false = []
+    for d in decl:
+        j = names.index(d["fault"])
+        d["correct"] = bool(int(truth_codes[d["step"]]) >> j & 1)
+        if not d["correct"]:
+            false.append({"fault": d["fault"], "time": d["time"]})
+    delays = {}
+    for ev, k_ev in zip(sc.events, setup.event_steps, strict=True):
+        first = [d for d in decl if d["fault"] == ev.fault and d["correct"]]
+        delays[ev.fault] = float((first[0]["step"] - k_ev) * dt) if first else None
+    recognised = np.asarray(outputs["recognised"])
+    health = np.asarray(outputs["health"])
+    acc = float(np.mean(recognised == truth_codes)) if N else float("nan")
+    return {
+        "scenario": sc.name,
+        "source": sc.source,
+        "method": setup.method,
+        "seed": seed,
+        "num_models": setup.diagnoser.num_models,
+        "num_faults": len(names),
+        "num_steps": N,
+        "dt": dt,
+        "duration_s": N * dt,
+        "faults": names,
+        "events": [
+            {"fault": ev.fault, "time": float(ev.time), "magnitude": float(ev.magnitude)}
+            for ev in sc.events
+        ],
+        "declarations": [
+            {"fault": d["fault"], "time": d["time"], "correct": d["correct"]} for d in decl
+        ],
+        "detection_delay_s": delays,
+        "false_declarations": len(false),
+        "false_declaration_list": false,
+        "mode_accuracy": acc,
+        "transition": setup.transition.tolist(),
+        "initial_mode_probs": setup.initial_mode_probs.tolist(),
+        "threshold": float(sc.filter.decision.threshold),
+        "hold": int(sc.filter.decision.hold),
+        "health": {
+            "cov_repaired_steps": int(np.sum(health & 1 > 0)),
+            "nonfinite_caught_steps": int(np.sum(health & 2 > 0)),
+            "gated_steps": int(np.sum(health & 4 > 0)),
+            "missing_steps": int(np.sum(health & 8 > 0)),
+        },
+        "runtime_s": float(runtime_s),
+        "simulation_runtime_s": None if sim_runtime_s is None else float(sim_runtime_s),
+        "steps_per_s": float(N / runtime_s) if runtime_s > 0 else None,
+        "dtype": str(setup.params.imm.Q.dtype),
+    }

@@ -1,0 +1,300 @@
+"""Fault diagnosers: the updated IMM (UIMM) and the combinatorial IMM, same harness.
+
+Both are ``(init, step)`` pairs over a :class:`DiagState`; ``step`` runs one IMM cycle
+(:func:`uimm_jax.imm.imm_step`) and then the decision rule.
+
+**Decision rule** (paper eq. 29 with persistence): let ``c`` be the most probable model.
+If ``mu_c >= threshold`` and ``c``'s fault set contains an undeclared fault, a run counter
+for ``c`` grows by one per sample (and restarts when ``c`` changes or the condition fails);
+when it reaches ``hold`` the faults of ``c`` are *declared*.  Declared faults never retract
+(faults are irreversible, paper section 3.3).
+
+**UIMM** (design.md section 3).  With the declared set ``D`` the bank is ``[D, D+f1, ...,
+D+fF]``.  Declaring fault ``j`` (model ``c = j+1``):
+
+1. ``D <- D | {j}``; every model's parameters are rebuilt with the masked update
+   ``where(mask, fault_value, nominal)`` (:func:`uimm_jax.bank.thetas_for_sets`) and the
+   bank is re-discretised -- under ``lax.cond``, i.e. only on the steps where some run
+   declares, never every step.
+2. Hand-over of the estimate: every model restarts from the winning model's posterior
+   mean and covariance (the winner was conditioned on the fault that is now declared; the
+   others were not).
+3. Mode probabilities: model 0 (now "D, no new fault") inherits the winner's probability,
+   the winner's slot -- now identical to model 0 -- is masked out (probability 0, never
+   mixed), the other models keep theirs, and the vector is renormalised.
+
+**Combinatorial IMM**: ``2^F`` models, one per fault subset, fixed; the same decision
+rule latches the declared set (for metrics) but the bank never changes.
+
+The recognised system mode at each step is the fault set of the most probable model
+(for UIMM: ``D`` plus the most probable undeclared hypothesis).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Literal, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from uimm_jax.bank import FaultTable, combinatorial_sets, set_codes, thetas_for_sets, uimm_sets
+from uimm_jax.imm import IMMParams, IMMState, StepInfo, imm_step, log_normalize
+
+__all__ = ["DiagInfo", "DiagParams", "DiagState", "Diagnoser", "build_diagnoser"]
+
+
+class DiagParams(NamedTuple):
+    """Differentiable parameters of a diagnoser.
+
+    Attributes:
+        imm: transition (log), Q and R (:class:`uimm_jax.imm.IMMParams`).
+        threshold: decision threshold ``mu_f`` on the mode probability (eq. 29).
+        hold: persistence in samples (int32 scalar).
+    """
+
+    imm: IMMParams
+    threshold: jax.Array
+    hold: jax.Array
+
+
+class DiagState(NamedTuple):
+    """Carried diagnoser state.
+
+    Attributes:
+        imm: the bank's :class:`~uimm_jax.imm.IMMState`.
+        cache: the dynamics cache of the current bank (re-built on declarations).
+        declared: ``(*runs, F)`` bool, the declared fault set ``D`` (monotone).
+        run_model: ``(*runs,)`` int32, the model whose run counter is active.
+        run_len: ``(*runs,)`` int32, how many consecutive samples it has qualified.
+    """
+
+    imm: IMMState
+    cache: Any
+    declared: jax.Array
+    run_model: jax.Array
+    run_len: jax.Array
+
+
+class DiagInfo(NamedTuple):
+    """Per-step diagnoser outputs.
+
+    Attributes:
+        step: the IMM :class:`~uimm_jax.imm.StepInfo`.
+        recognised: ``(*runs,)`` int32 code of the recognised fault set (bit j = fault j).
+        declared: ``(*runs,)`` int32 code of the declared set after this step.
+        declared_now: ``(*runs,)`` bool, a declaration happened at this step.
+    """
+
+    step: StepInfo
+    recognised: jax.Array
+    declared: jax.Array
+    declared_now: jax.Array
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Diagnoser:
+    """A UIMM or combinatorial-IMM diagnoser for one plant and fault table.
+
+    Build with :func:`build_diagnoser`.  Instances are static configuration (hashed by
+    identity): the differentiable numbers travel in :class:`DiagParams`.
+
+    Attributes:
+        method: ``"uimm"`` or ``"imm"``.
+        dyn: the dynamics object (:mod:`uimm_jax.dynamics`).
+        table: the :class:`~uimm_jax.bank.FaultTable`.
+        gate: optional chi-square innovation gate.
+    """
+
+    method: Literal["uimm", "imm"]
+    dyn: Any
+    table: FaultTable
+    gate: float | None = None
+
+    @property
+    def num_faults(self) -> int:
+        """``F``."""
+        return self.table.num_faults
+
+    @property
+    def num_models(self) -> int:
+        """``F + 1`` for UIMM, ``2^F`` for IMM."""
+        F = self.num_faults
+        return F + 1 if self.method == "uimm" else 2**F
+
+    def model_sets(self, declared: jax.Array) -> jax.Array:
+        """Fault sets of the bank's models, ``(*runs, M, F)``."""
+        if self.method == "uimm":
+            return uimm_sets(declared)
+        sets = jnp.asarray(combinatorial_sets(self.num_faults))
+        return jnp.broadcast_to(sets, declared.shape[:-1] + sets.shape)
+
+    def model_labels(self) -> list[str]:
+        """Human labels of the model slots (UIMM slots are relative to ``D``)."""
+        names = self.table.names
+        if self.method == "uimm":
+            return ["D (no new fault)"] + [f"D + {n}" for n in names]
+        sets = combinatorial_sets(self.num_faults)
+        return [
+            " + ".join(n for n, on in zip(names, s, strict=True) if on) or "fault-free"
+            for s in sets
+        ]
+
+    def prepare(self, declared: jax.Array, dtype) -> Any:
+        """Dynamics cache of the bank for the declared set ``(*runs, F)``."""
+        return self.dyn.prepare(thetas_for_sets(self.table, self.model_sets(declared), dtype))
+
+    def init(self, mean0, cov0, mode_probs0, runs: tuple[int, ...] = (), dtype=None) -> DiagState:
+        """Initial state: every model starts at ``(mean0, cov0)`` with ``mode_probs0``.
+
+        Args:
+            mean0: ``(n,)`` initial mean.
+            cov0: ``(n, n)`` initial covariance.
+            mode_probs0: ``(M,)`` initial mode probabilities (zeros allowed).
+            runs: batch shape of Monte Carlo runs (``()`` for one run).
+            dtype: float dtype (default: JAX's default float).
+        """
+        dtype = dtype or jnp.asarray(0.0).dtype
+        M = self.num_models
+        shape = runs + (M,)
+        mean = jnp.broadcast_to(
+            jnp.asarray(mean0, dtype)[(...,) + (None,) * len(shape)], (len(mean0),) + shape
+        )
+        cov0 = jnp.asarray(cov0, dtype)
+        cov = jnp.broadcast_to(cov0[(...,) + (None,) * len(shape)], cov0.shape + shape)
+        mp = jnp.asarray(mode_probs0, dtype)
+        log_mu = jnp.broadcast_to(
+            jnp.where(mp > 0, jnp.log(jnp.where(mp > 0, mp, 1.0)), -jnp.inf), shape
+        )
+        declared = jnp.zeros(runs + (self.num_faults,), bool)
+        return DiagState(
+            imm=IMMState(mean, cov, log_mu),
+            cache=self.prepare(declared, dtype),
+            declared=declared,
+            run_model=jnp.zeros(runs, jnp.int32),
+            run_len=jnp.zeros(runs, jnp.int32),
+        )
+
+    def step(
+        self,
+        state: DiagState,
+        params: DiagParams,
+        u: jax.Array,
+        y: jax.Array,
+        *,
+        with_cov: bool = True,
+    ) -> tuple[DiagState, DiagInfo]:
+        """One diagnoser step: IMM cycle (eqs. 15-28, 30-31) then decision (eq. 29).
+
+        Args:
+            state: carried :class:`DiagState`.
+            params: :class:`DiagParams`.
+            u: ``(p, *runs)`` input.
+            y: ``(m, *runs)`` measurement (NaN = missing).
+            with_cov: compute the combined covariance in the info.
+
+        Returns:
+            ``(new_state, info)``.
+        """
+        declared = state.declared
+        M = self.num_models
+        sets = self.model_sets(declared)  # (*runs, M, F)
+        if self.method == "uimm":
+            active = jnp.concatenate(
+                [jnp.ones(declared.shape[:-1] + (1,), bool), ~declared], axis=-1
+            )
+        else:
+            active = None
+        imm_state, info = imm_step(
+            self.dyn,
+            state.imm,
+            state.cache,
+            params.imm,
+            u,
+            y,
+            active=active,
+            gate=self.gate,
+            with_cov=with_cov,
+        )
+        log_mu = imm_state.log_mode_probs
+        cand = jnp.argmax(log_mu, axis=-1).astype(jnp.int32)
+        onehot = cand[..., None] == jnp.arange(M)
+        cand_set = jnp.any(onehot[..., None] & sets, axis=-2)  # (*runs, F)
+        top = jnp.max(log_mu, axis=-1)
+        dtype = log_mu.dtype
+        qualifies = jnp.any(cand_set & ~declared, axis=-1) & (
+            top >= jnp.log(jnp.asarray(params.threshold, dtype))
+        )
+        run_len = jnp.where(qualifies, jnp.where(cand == state.run_model, state.run_len + 1, 1), 0)
+        declare_now = qualifies & (run_len >= params.hold)
+        new_declared = jnp.where(declare_now[..., None], declared | cand_set, declared)
+        run_len = jnp.where(declare_now, 0, run_len).astype(jnp.int32)
+        cache = state.cache
+        if self.method == "uimm":
+            imm_state, cache = self._declare(
+                imm_state, cache, onehot, declare_now, new_declared, dtype
+            )
+        new_state = DiagState(imm_state, cache, new_declared, cand, run_len)
+        out = DiagInfo(
+            step=info,
+            recognised=set_codes(cand_set),
+            declared=set_codes(new_declared),
+            declared_now=declare_now,
+        )
+        return new_state, out
+
+    def _declare(self, imm_state: IMMState, cache, onehot, declare_now, new_declared, dtype):
+        """UIMM hand-over and masked re-parameterisation on declaration (see module doc)."""
+        dn = declare_now[..., None]  # (*runs, 1)
+        oh = onehot.astype(dtype)
+        win_mean = jnp.sum(imm_state.mean * oh, axis=-1, keepdims=True)
+        win_cov = jnp.sum(imm_state.cov * oh, axis=-1, keepdims=True)
+        mean = jnp.where(dn, win_mean, imm_state.mean)
+        cov = jnp.where(dn, win_cov, imm_state.cov)
+        lm = imm_state.log_mode_probs
+        top = jnp.max(lm, axis=-1, keepdims=True)
+        slot0 = jnp.arange(lm.shape[-1]) == 0
+        moved = jnp.where(slot0, top, jnp.where(onehot, -jnp.inf, lm))
+        moved, _ = log_normalize(moved)
+        lm = jnp.where(dn, moved, lm)
+
+        def rebuild(c):
+            fresh = self.prepare(new_declared, dtype)
+            return jax.tree.map(lambda new, old: jnp.where(dn, new, old), fresh, c)
+
+        cache = jax.lax.cond(jnp.any(declare_now), rebuild, lambda c: c, cache)
+        return IMMState(mean, cov, lm), cache
+
+
+def build_diagnoser(
+    method: str, dyn: Any, table: FaultTable, *, gate: float | None = None
+) -> Diagnoser:
+    """Build a UIMM (``F + 1`` models) or combinatorial IMM (``2^F`` models) diagnoser.
+
+    Args:
+        method: ``"uimm"`` or ``"imm"``.
+        dyn: dynamics object for the plant (:func:`uimm_jax.dynamics.make_dynamics`).
+        table: the fault table of the bank.
+        gate: optional chi-square innovation gate.
+    """
+    if method not in ("uimm", "imm"):
+        raise ValueError(f"method: expected 'uimm' or 'imm', got {method!r}")
+    if method == "imm" and table.num_faults > 16:
+        raise ValueError(
+            f"method 'imm' with {table.num_faults} faults needs "
+            f"2^{table.num_faults} models; use 'uimm' or fewer faults"
+        )
+    return Diagnoser(method, dyn, table, None if gate is None else float(gate))
+
+
+def make_params(transition, Q, R, threshold, hold, dtype=None) -> DiagParams:
+    """Pack host values into :class:`DiagParams` (``log`` of the transition matrix)."""
+    dtype = dtype or jnp.asarray(0.0).dtype
+    with np.errstate(divide="ignore"):
+        log_p = np.log(np.asarray(transition, np.float64))
+    return DiagParams(
+        IMMParams(jnp.asarray(log_p, dtype), jnp.asarray(Q, dtype), jnp.asarray(R, dtype)),
+        jnp.asarray(threshold, dtype),
+        jnp.asarray(hold, jnp.int32),
+    )

@@ -1,0 +1,307 @@
+"""Tests for uimm_jax.plotting: every figure builds and saves; decimation keeps extremes."""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+from matplotlib.figure import Figure
+
+_SRC = Path(__file__).resolve().parents[1] / "src"
+_MODULE_FILE = _SRC / "uimm_jax" / "plotting.py"
+
+# Import as uimm_jax.plotting when the package imports; otherwise (other modules of the
+# package still in progress) load the file on its own. The same logic runs in the
+# subprocess of test_no_pyplot_import.
+_LOADER = textwrap.dedent(
+    f"""
+    import importlib, importlib.util, sys
+    sys.path.insert(0, {str(_SRC)!r})
+    try:
+        plotting = importlib.import_module("uimm_jax.plotting")
+    except Exception:
+        spec = importlib.util.spec_from_file_location(
+            "_uimm_jax_plotting", {str(_MODULE_FILE)!r}
+        )
+        plotting = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = plotting
+        spec.loader.exec_module(plotting)
+    """
+)
+
+
+def _load():
+    try:
+        return importlib.import_module("uimm_jax.plotting")
+    except Exception:
+        if str(_SRC) not in sys.path:
+            sys.path.insert(0, str(_SRC))
+        try:
+            return importlib.import_module("uimm_jax.plotting")
+        except Exception:
+            spec = importlib.util.spec_from_file_location("_uimm_jax_plotting", _MODULE_FILE)
+            module = importlib.util.module_from_spec(spec)
+            sys.modules[spec.name] = module
+            spec.loader.exec_module(module)
+            return module
+
+
+plotting = _load()
+
+FAULTS = ["valve_wear", "leakage", "air_in_oil"]
+
+
+def _saved(fig, tmp_path, name):
+    assert isinstance(fig, Figure)
+    out = plotting.save_figure(fig, tmp_path / "sub" / "dir" / f"{name}.png")
+    assert out.exists()
+    data = out.read_bytes()
+    assert len(data) > 1000
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    return out
+
+
+def _sim1(n=3000, seed=0):
+    """A synthetic sim-1 like run: fault-free, valve wear at 30 s, + leakage at 60 s."""
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0.0, 100.0, n)
+    truth = np.where(t < 30, 0, np.where(t < 60, 0b001, 0b011)).astype(np.int32)
+    recognised = truth.copy()
+    flip = rng.random(n) < 0.02
+    recognised[flip] = rng.choice([0, 1, 3, 5], size=flip.sum())
+    models = ["fault-free", "valve_wear", "leakage", "air_in_oil"]
+    active = np.zeros((n, 4))
+    active[t < 30, 0] = 5
+    active[(t >= 30) & (t < 60), 1] = 5
+    active[t >= 60, 2] = 5
+    logits = rng.normal(size=(n, 4)) + active
+    probs = np.exp(logits - logits.max(axis=1, keepdims=True))
+    probs /= probs.sum(axis=1, keepdims=True)
+    return t, truth, recognised, probs, models
+
+
+# ------------------------------------------------------------------------ _decimate
+
+
+def test_decimate_exact_when_short():
+    t = np.arange(100.0)
+    y = np.sin(t)
+    codes = np.arange(100) % 3
+    td, yd, cd = plotting._decimate(t, y, codes, max_points=100)
+    np.testing.assert_array_equal(td, t)
+    np.testing.assert_array_equal(yd, y)
+    np.testing.assert_array_equal(cd, codes)
+
+
+@pytest.mark.parametrize("n", [20001, 100_003, 1_000_000])
+def test_decimate_envelope_keeps_extremes(n):
+    rng = np.random.default_rng(n)
+    t = np.arange(n) * 1e-4
+    y = rng.normal(size=n)
+    y[n // 3] = 50.0  # isolated spikes that striding would almost surely miss
+    y[2 * n // 3 + 1] = -40.0
+    y2 = np.stack([np.cos(t), rng.normal(size=n)], axis=1)
+    max_points = 20000
+    td, yd, y2d = plotting._decimate(t, y, y2, max_points=max_points)
+    assert len(td) <= max_points
+    assert len(td) >= max_points // 2  # not wastefully coarse
+    assert yd.shape == td.shape and y2d.shape == (len(td), 2)
+    assert yd.max() == y.max() == 50.0
+    assert yd.min() == y.min() == -40.0
+    np.testing.assert_array_equal(y2d.max(axis=0), y2.max(axis=0))
+    np.testing.assert_array_equal(y2d.min(axis=0), y2.min(axis=0))
+    assert np.all(np.diff(td) >= 0)
+    assert td[0] == t[0] and td[-1] == t[-1]
+
+
+def test_decimate_keeps_min_and_max_of_every_bucket():
+    rng = np.random.default_rng(1)
+    n, max_points = 10_000, 100
+    t = np.arange(n, dtype=float)
+    y = rng.normal(size=n)
+    td, yd = plotting._decimate(t, y, max_points=max_points)
+    assert len(td) <= max_points
+    # Each decimated pair (first, last time of a bucket) brackets the bucket's samples.
+    for k in range(0, len(td), 2):
+        lo, hi = int(td[k]), int(td[k + 1])
+        bucket = y[lo : hi + 1]
+        assert {yd[k], yd[k + 1]} == {bucket.min(), bucket.max()}
+
+
+def test_decimate_strides_integer_codes():
+    n = 1_000_000
+    t = np.arange(n) * 1e-4
+    codes = (np.arange(n) // 300_000).astype(np.int32)
+    td, cd = plotting._decimate(t, codes, max_points=20000)
+    assert len(td) <= 20000
+    assert cd.dtype == codes.dtype
+    assert set(np.unique(cd)) <= set(np.unique(codes))
+    np.testing.assert_array_equal(cd, codes[np.searchsorted(t, td)])  # exact samples
+
+
+def test_decimate_rejects_bad_shapes():
+    with pytest.raises(ValueError):
+        plotting._decimate(np.arange(10.0), np.arange(9.0))
+
+
+# ------------------------------------------------------------------------ figures
+
+
+def test_fault_set_name():
+    assert plotting.fault_set_name(0, FAULTS) == "fault-free"
+    assert plotting.fault_set_name(1, FAULTS) == "valve_wear"
+    assert plotting.fault_set_name(0b011, FAULTS) == "valve_wear + leakage"
+    assert plotting.fault_set_name(0b101, FAULTS) == "valve_wear + air_in_oil"
+    assert plotting.fault_set_name(0b1000, FAULTS) == "fault3"
+
+
+def test_plot_mode_probabilities(tmp_path):
+    t, _, _, probs, models = _sim1()
+    fig = plotting.plot_mode_probabilities(
+        t,
+        probs,
+        models,
+        events=[(30.0, "valve_wear"), (60.0, "leakage")],
+        declarations=[(30.4, "valve_wear"), (61.0, "leakage")],
+        title="sim 1",
+    )
+    _saved(fig, tmp_path, "mode_probs")
+    (ax,) = fig.axes
+    assert ax.get_ylim()[0] <= 0.0 and ax.get_ylim()[1] >= 1.0
+    assert [text.get_text() for text in ax.get_legend().get_texts()][:4] == models
+
+
+def test_plot_mode_probabilities_long_run_is_decimated(tmp_path):
+    n = 1_000_000
+    t = np.arange(n) * 1e-4
+    p = np.full((n, 2), 0.5)
+    p[n // 2, 0] = 1.0
+    fig = plotting.plot_mode_probabilities(t, p, ["a", "b"])
+    line = fig.axes[0].get_lines()[0]
+    assert len(line.get_xdata()) <= 20000
+    assert np.max(line.get_ydata()) == 1.0
+    _saved(fig, tmp_path, "mode_probs_long")
+
+
+def test_plot_mode_recognition(tmp_path):
+    t, truth, recognised, _, _ = _sim1()
+    fig = plotting.plot_mode_recognition(t, recognised, truth, FAULTS)
+    _saved(fig, tmp_path, "recognition")
+    ax = fig.axes[0]
+    labels = [tick.get_text() for tick in ax.get_yticklabels()]
+    assert labels == ["fault-free", "valve_wear", "valve_wear + leakage", "valve_wear + air_in_oil"]
+    rate = np.mean(recognised == truth)
+    texts = " ".join(text.get_text() for text in ax.texts)
+    assert f"{100 * rate:.2f} %" in texts
+
+
+def test_plot_mode_recognition_perfect(tmp_path):
+    t = np.linspace(0, 1, 50)
+    truth = np.zeros(50, dtype=int)
+    fig = plotting.plot_mode_recognition(t, truth, truth, FAULTS)
+    assert "100.00 %" in " ".join(text.get_text() for text in fig.axes[0].texts)
+    assert [tick.get_text() for tick in fig.axes[0].get_yticklabels()] == ["fault-free"]
+    _saved(fig, tmp_path, "recognition_perfect")
+
+
+@pytest.mark.parametrize("residuals", [True, False])
+def test_plot_states(tmp_path, residuals):
+    rng = np.random.default_rng(0)
+    t = np.linspace(0, 10, 2000)
+    x = np.stack([1e-3 * np.sin(t), 1e-3 * np.cos(t), 1e6 * np.sin(0.3 * t)], axis=1)
+    xe = x * (1 + 0.01 * rng.normal(size=x.shape))
+    fig = plotting.plot_states(
+        t, x, xe, ["x_p", "v_p", "p_h"], units=["m", "m/s", "Pa"], residuals=residuals
+    )
+    assert len(fig.axes) == (6 if residuals else 3)
+    _saved(fig, tmp_path, f"states_{residuals}")
+
+
+def test_plot_model_count(tmp_path):
+    fig = plotting.plot_model_count()
+    (ax,) = fig.axes
+    assert ax.get_yscale() == "log"
+    imm, uimm = ax.get_lines()[:2]
+    np.testing.assert_array_equal(imm.get_ydata(), 2.0 ** np.arange(1, 11))
+    np.testing.assert_array_equal(uimm.get_ydata(), np.arange(2, 12))
+    _saved(fig, tmp_path, "model_count")
+
+    measured = {
+        "F": [1, 2, 3, 4, 6],
+        "imm_us": [10.0, 20.0, 45.0, 100.0, float("nan")],
+        "uimm_us": [9.0, 12.0, 15.0, 18.0, 25.0],
+    }
+    fig = plotting.plot_model_count(6, measured=measured)
+    assert len(fig.axes) == 2 and fig.axes[1].get_yscale() == "log"
+    _saved(fig, tmp_path, "model_count_measured")
+
+
+def test_plot_sweep(tmp_path):
+    cells = []
+    for method in ["uimm", "imm"]:
+        for mag in [0.25, 0.5, 1.0]:
+            cells.append(
+                {
+                    "method": method,
+                    "magnitude": mag,
+                    "detection_probability": {"valve_wear": mag, "leakage": mag**2},
+                    "detection_probability_ci": {
+                        "valve_wear": [max(0.0, mag - 0.1), min(1.0, mag + 0.1)],
+                        "leakage": [mag**2 * 0.8, min(1.0, mag**2 * 1.2)],
+                    },
+                    "median_delay_s": {"valve_wear": 1.0 / mag, "leakage": None},
+                }
+            )
+    cells.append(  # a cell without CIs
+        {
+            "method": "bank",
+            "magnitude": 0.5,
+            "detection_probability": {"valve_wear": 0.3},
+            "median_delay_s": {"valve_wear": None},
+        }
+    )
+    fig = plotting.plot_sweep(cells, title="sweep")
+    assert len(fig.axes) == 2
+    _saved(fig, tmp_path, "sweep")
+
+
+def test_plot_confusion(tmp_path):
+    m = np.array([[50, 2, 0], [3, 40, 7], [0, 1, 45]])
+    labels = ["none", "valve_wear", "leakage"]
+    fig = plotting.plot_confusion(m, labels, labels)
+    texts = {text.get_text() for text in fig.axes[0].texts}
+    assert {"50", "2", "0", "45"} <= texts
+    _saved(fig, tmp_path, "confusion")
+
+
+def test_plot_loss_curve(tmp_path):
+    k = np.arange(200)
+    fig = plotting.plot_loss_curve(100.0 * np.exp(-k / 20) + 0.01)
+    assert fig.axes[0].get_yscale() == "log"
+    _saved(fig, tmp_path, "loss")
+    fig = plotting.plot_loss_curve(
+        {"train": np.linspace(2, 1, 50), "val": np.linspace(2.2, 1.3, 50)}
+    )
+    assert fig.axes[0].get_yscale() == "linear"
+    _saved(fig, tmp_path, "loss_dict")
+
+
+def test_no_pyplot_import():
+    code = _LOADER + textwrap.dedent(
+        """
+        assert hasattr(plotting, "plot_mode_probabilities")
+        import numpy as np
+        fig = plotting.plot_model_count(3)
+        print("pyplot" if "matplotlib.pyplot" in sys.modules else "clean")
+        """
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
+    )
+    assert result.stdout.strip().splitlines()[-1] == "clean", result.stderr
