@@ -53,18 +53,27 @@ def materialize(tree):
     XLA CPU duplicates cheap elementwise producers into every consumer fusion; in unrolled
     small-matrix code a shared sub-expression can then be recomputed dozens of times per
     step (measured: ~10k HLO ops instead of ~1.5k for one IMM step).  A reduction is never
-    duplicated into its consumers, so ``sum([x, 0])`` over a new axis of size two acts as a
-    materialisation point.  (``lax.optimization_barrier`` is removed by XLA CPU before
+    duplicated into its consumers, so summing ``[x, 0]`` over a new axis of size two acts
+    as a materialisation point.  All arrays of the same shape and dtype are stacked into
+    one such reduction (one fusion, one buffer) and sliced back out, which keeps the number
+    of kernels per step small.  (``lax.optimization_barrier`` is removed by XLA CPU before
     fusion and does not help.)  Python floats (structural constants) pass through.
     """
-
-    def one(x):
+    leaves, treedef = jax.tree.flatten(tree)
+    groups: dict = {}
+    for i, x in enumerate(leaves):
         if isinstance(x, float | int) or x is None:
-            return x
+            continue
         x = jnp.asarray(x)
-        return jnp.sum(jnp.stack([x, jnp.zeros_like(x)]), axis=0)
-
-    return jax.tree.map(one, tree)
+        leaves[i] = x
+        groups.setdefault((x.shape, x.dtype), []).append(i)
+    for idx in groups.values():
+        stacked = jnp.stack([leaves[i] for i in idx])
+        both = jnp.stack([stacked, jnp.zeros_like(stacked)])
+        kept = jnp.sum(both, axis=0)
+        for j, i in enumerate(idx):
+            leaves[i] = kept[j]
+    return jax.tree.unflatten(treedef, leaves)
 
 
 def _is_zero(a: Entry) -> bool:
@@ -126,6 +135,28 @@ def from_array(a: Any, ndim: int, *, constant: bool = False) -> list:
     if ndim == 1:
         return [a[i] for i in range(a.shape[0])]
     return [[a[i, j] for j in range(a.shape[1])] for i in range(a.shape[0])]
+
+
+def from_array_pattern(a: Any, pattern: tuple[tuple[bool, ...], ...] | None) -> Mat:
+    """Like ``from_array(a, 2)``, with structural zeros where ``pattern`` is False.
+
+    ``pattern`` is static (known at trace time), e.g. the sparsity of a diagonal noise
+    covariance: the zero entries then cost nothing in the unrolled algebra.
+    """
+    m = from_array(a, 2)
+    if pattern is None:
+        return m
+    return [
+        [e if keep else 0.0 for e, keep in zip(row, prow, strict=True)]
+        for row, prow in zip(m, pattern, strict=True)
+    ]
+
+
+def sparsity_pattern(a: Any) -> tuple[tuple[bool, ...], ...]:
+    """Static non-zero pattern of concrete matrices ``(..., r, c)`` (union over leading axes)."""
+    a = np.asarray(a)
+    nz = np.any(a.reshape((-1,) + a.shape[-2:]) != 0, axis=0)
+    return tuple(tuple(bool(v) for v in row) for row in nz)
 
 
 def to_array(x: list, batch_shape: tuple[int, ...], dtype: Any) -> jnp.ndarray:
@@ -213,7 +244,7 @@ def quad_sym(a: Mat, p: Mat) -> Mat:
     return out
 
 
-def chol(s: Mat, floor: Entry) -> tuple[Mat, Entry]:
+def chol(s: Mat, floor: Entry) -> tuple[Mat, Vec, Entry]:
     """Lower Cholesky factor of a symmetric matrix, with floored pivots.
 
     Args:
@@ -221,11 +252,13 @@ def chol(s: Mat, floor: Entry) -> tuple[Mat, Entry]:
         floor: smallest admissible squared pivot (an entry broadcastable to the batch).
 
     Returns:
-        ``(L, repaired)`` where ``repaired`` is a boolean entry, true where a pivot had to
-        be raised to ``floor`` (the matrix was not numerically positive definite).
+        ``(L, inv_diag, repaired)``: the factor, the reciprocals of its diagonal (solves
+        multiply by them instead of dividing), and a boolean entry, true where a pivot had
+        to be raised to ``floor`` (the matrix was not numerically positive definite).
     """
     n = len(s)
     L: Mat = [[0.0] * n for _ in range(n)]
+    inv_diag: Vec = [None] * n
     repaired = None
     for j in range(n):
         d = minus(s[j][j], dot(L[j][:j], L[j][:j]))
@@ -235,21 +268,23 @@ def chol(s: Mat, floor: Entry) -> tuple[Mat, Entry]:
         ljj = jnp.sqrt(d)
         inv = 1.0 / ljj
         L[j][j] = ljj
+        inv_diag[j] = inv
         for i in range(j + 1, n):
             L[i][j] = mul(minus(s[i][j], dot(L[i][:j], L[j][:j])), inv)
-    return L, repaired
+    return L, inv_diag, repaired
 
 
-def chol_solve_vec(L: Mat, b: Vec) -> Vec:
+def chol_solve_vec(L: Mat, b: Vec, inv_diag: Vec | None = None) -> Vec:
     """Solve ``L y = b`` (forward substitution) for lower-triangular ``L``."""
     n = len(L)
     y: Vec = [0.0] * n
     for i in range(n):
-        y[i] = minus(b[i], dot(L[i][:i], y[:i])) / L[i][i]
+        r = minus(b[i], dot(L[i][:i], y[:i]))
+        y[i] = r / L[i][i] if inv_diag is None else mul(r, inv_diag[i])
     return y
 
 
-def chol_solve_vec_t(L: Mat, y: Vec) -> Vec:
+def chol_solve_vec_t(L: Mat, y: Vec, inv_diag: Vec | None = None) -> Vec:
     """Solve ``L' x = y`` (back substitution) for lower-triangular ``L``."""
     n = len(L)
     x: Vec = [0.0] * n
@@ -257,7 +292,7 @@ def chol_solve_vec_t(L: Mat, y: Vec) -> Vec:
         acc = y[i]
         for k in range(i + 1, n):
             acc = minus(acc, mul(L[k][i], x[k]))
-        x[i] = acc / L[i][i]
+        x[i] = acc / L[i][i] if inv_diag is None else mul(acc, inv_diag[i])
     return x
 
 

@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from uimm_jax._smallmat import sparsity_pattern
 from uimm_jax.dynamics import LinearCache, MatrixBankDynamics
 from uimm_jax.errors import UIMMWarning
 from uimm_jax.imm import IMMParams, IMMState, imm_step
@@ -95,11 +96,23 @@ def _warn_if_float32(dtype) -> None:
 _MATRIX_DYN = MatrixBankDynamics()
 
 
-@functools.partial(jax.jit, static_argnames=("gate", "keep_model_mean"))
-def _imm_scan(cache, params, state0, inputs, measurements, gate, keep_model_mean):
+@functools.partial(jax.jit, static_argnames=("gate", "keep_model_mean", "q_pattern", "r_pattern"))
+def _imm_scan(
+    cache, params, state0, inputs, measurements, gate, keep_model_mean, q_pattern, r_pattern
+):
     def body(state, uy):
         u, y = uy
-        new, info = imm_step(_MATRIX_DYN, state, cache, params, u, y, gate=gate)
+        new, info = imm_step(
+            _MATRIX_DYN,
+            state,
+            cache,
+            params,
+            u,
+            y,
+            gate=gate,
+            q_pattern=q_pattern,
+            r_pattern=r_pattern,
+        )
         out = (
             info.log_mode_probs,
             info.mean,
@@ -228,6 +241,8 @@ def imm_filter(
         jnp.asarray(y, dtype),
         gate,
         return_model_means,
+        sparsity_pattern(Q),
+        sparsity_pattern(R),
     )
     log_mu, mean, cov, mll, inc, health = out[:6]
     model_mean = jnp.moveaxis(out[6], -1, 1) if return_model_means else None

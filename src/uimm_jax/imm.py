@@ -181,6 +181,8 @@ def imm_step(
     active: jax.Array | None = None,
     gate: float | None = None,
     with_cov: bool = True,
+    q_pattern: tuple | None = None,
+    r_pattern: tuple | None = None,
 ) -> tuple[IMMState, StepInfo]:
     """One IMM cycle: mix, predict with ``u``, update with ``y``, re-weight, combine.
 
@@ -196,6 +198,9 @@ def imm_step(
             best-fitting active model has ``e' S^-1 e > gate``, the measurement is treated
             as missing for the whole bank (an outlier), and the step is flagged.
         with_cov: compute the combined covariance (eq. 31) for the info.
+        q_pattern: static non-zero pattern of ``Q`` (entries outside it are treated as
+            structural zeros; see :func:`uimm_jax._smallmat.sparsity_pattern`).
+        r_pattern: static non-zero pattern of ``R``.
 
     Returns:
         ``(new_state, info)``.
@@ -207,11 +212,12 @@ def imm_step(
     u_e = [u[i][..., None] for i in range(u.shape[0])]
     y_e = [y[c][..., None] for c in range(y.shape[0])]
     x_pred, F = dyn.predict(cache, x0, u_e)
-    P_pred = kf_predict_cov(F, P0, sm.from_array(params.Q, 2))
+    P_pred = kf_predict_cov(F, P0, sm.from_array_pattern(params.Q, q_pattern))
     y_pred, H = dyn.observe(cache, x_pred)
     x_pred, P_pred, y_pred = sm.materialize((x_pred, P_pred, y_pred))
     floor = float(jnp.finfo(dtype).tiny) ** 0.5
-    res = kf_update(x_pred, P_pred, y_e, y_pred, H, sm.from_array(params.R, 2), floor)
+    R = sm.from_array_pattern(params.R, r_pattern)
+    res = kf_update(x_pred, P_pred, y_e, y_pred, H, R, floor)
     x_new, P_new, ll, nis, repaired = sm.materialize(
         (res.mean, res.cov, res.loglik, res.nis, res.repaired)
     )

@@ -74,35 +74,35 @@ def kf_update(
     n = len(x)
     valid = [jnp.isfinite(yc) for yc in y]
     e = [jnp.where(v, yc - yp, 0.0) for v, yc, yp in zip(valid, y, y_pred, strict=True)]
-    Hm = [
-        [jnp.where(valid[c], H[c][j], 0.0) if not sm._is_zero(H[c][j]) else 0.0 for j in range(n)]
+    # Missing channels: zero their rows/columns of S and P H' and put 1 on S's diagonal.
+    # Then the gain's column for that channel is exactly zero, so H and R themselves need no
+    # masking (and structural zeros/ones of a constant H stay folded at trace time).
+    PHt = sm.matmul(P, sm.transpose(H))  # n x m
+    S = sm.add(sm.quad_sym(H, P), R)
+    S = [
+        [
+            jnp.where(valid[c], S[c][c], 1.0)
+            if c == d
+            else jnp.where(valid[c] & valid[d], S[c][d], 0.0)
+            for d in range(m)
+        ]
         for c in range(m)
     ]
-    Rm = [[None] * m for _ in range(m)]
-    for c in range(m):
-        for d in range(m):
-            if c == d:
-                Rm[c][d] = jnp.where(valid[c], R[c][c], 1.0)
-            elif sm._is_zero(R[c][d]):
-                Rm[c][d] = 0.0
-            else:
-                Rm[c][d] = jnp.where(valid[c] & valid[d], R[c][d], 0.0)
-    PHt = sm.matmul(P, sm.transpose(Hm))  # n x m
-    PHt, S = sm.materialize((PHt, sm.add(sm.quad_sym(Hm, P), Rm)))
-    L, repaired = sm.chol(S, floor)
-    L, PHt, e = sm.materialize((L, PHt, e))
-    # K' = S^-1 (P H')'  -> solve column by column (one per state).
-    Kt_cols = [sm.chol_solve_vec_t(L, sm.chol_solve_vec(L, row)) for row in PHt]
-    K = Kt_cols  # K[i] is row i of K (length m)
+    PHt = [[jnp.where(valid[c], PHt[i][c], 0.0) for c in range(m)] for i in range(n)]
+    S, PHt = sm.materialize((S, PHt))
+    L, inv_diag, repaired = sm.chol(S, floor)
+    L, inv_diag, e = sm.materialize((L, inv_diag, e))
+    # Row i of K = P H' S^-1 solves S k_i = (P H')_i (S symmetric).
+    K = [sm.chol_solve_vec_t(L, sm.chol_solve_vec(L, row, inv_diag), inv_diag) for row in PHt]
     K = sm.materialize(K)
-    v = sm.chol_solve_vec(L, e)
+    v = sm.chol_solve_vec(L, e, inv_diag)
     nis = sm.dot(v, v)
     logdet = sm.chol_logdet(L)
     num_obs = sum(vv.astype(jnp.int32) for vv in valid)
     loglik = -0.5 * (nis + logdet) - (0.5 * LOG_2PI) * num_obs.astype(nis.dtype)
     x_new = sm.add(x, sm.matvec(K, e))
-    IKH = sm.materialize(sm.sub(sm.eye(n), sm.matmul(K, Hm)))
-    P_new = sm.add(sm.quad_sym(IKH, P), sm.quad_sym(K, Rm))
+    IKH = sm.materialize(sm.sub(sm.eye(n), sm.matmul(K, H)))
+    P_new = sm.add(sm.quad_sym(IKH, P), sm.quad_sym(K, R))
     return UpdateResult(x_new, P_new, loglik, nis, repaired, num_obs)
 
 

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from uimm_jax._smallmat import sparsity_pattern
 from uimm_jax.bank import FaultTable, fault_table
 from uimm_jax.dynamics import make_dynamics
 from uimm_jax.errors import UIMMWarning
@@ -76,14 +77,15 @@ class RunSetup:
 
 
 @functools.lru_cache(maxsize=64)
-def _cached_diagnoser(plant, dt, method, gate, faults_key, nominal_key):
+def _cached_diagnoser(plant, dt, method, gate, faults_key, nominal_key, q_pattern, r_pattern):
     nominal = np.asarray(nominal_key)
     table = fault_table(plant.param_names, nominal, {k: dict(v) for k, v in faults_key})
     refs = [nominal] + [
         table.theta_numpy(np.eye(table.num_faults, dtype=bool)[j]) for j in range(table.num_faults)
     ]
     dyn = make_dynamics(plant, dt, np.array(refs))
-    return build_diagnoser(method, dyn, table, gate=gate), table
+    diag = build_diagnoser(method, dyn, table, gate=gate, q_pattern=q_pattern, r_pattern=r_pattern)
+    return diag, table
 
 
 def resolve_filter_settings(scenario, method: str) -> tuple[np.ndarray, np.ndarray]:
@@ -142,7 +144,14 @@ def setup_scenario(
     faults_key = tuple((k, tuple(sorted(v.items()))) for k, v in scenario.faults.items())
     gate = scenario.filter.gate
     diag, table = _cached_diagnoser(
-        plant, float(scenario.dt), method, gate, faults_key, tuple(nominal.tolist())
+        plant,
+        float(scenario.dt),
+        method,
+        gate,
+        faults_key,
+        tuple(nominal.tolist()),
+        sparsity_pattern(scenario.process_noise),
+        sparsity_pattern(scenario.measurement_noise),
     )
     P, mu0 = resolve_filter_settings(scenario, method)
     flt = scenario.filter
@@ -335,8 +344,10 @@ def run_scenario(
         seed: PRNG seed of the truth noise; default: the scenario's.
         chunk: steps per compiled chunk (progress granularity and memory bound).
         progress: optional ``(stage, done, total, elapsed)`` callback.
-        measurements: optional ``(N, m)`` measured data to diagnose instead of simulating
-            (the truth fields of the summary then follow the scenario's events).
+        measurements: optional measured data to diagnose instead of simulating: an
+            ``(N, m)`` array or a :class:`~uimm_jax.measured.MeasuredData` (whose inputs,
+            if any, are used); the truth fields of the summary then follow the scenario's
+            events and the true states are NaN.
 
     Returns:
         A :class:`RunResult`.
@@ -348,9 +359,14 @@ def run_scenario(
         else (lambda stage: None)
     )
     t0 = time.perf_counter()
-    truth = simulate_scenario(setup, seed, chunk=chunk, progress=cb("simulate"))
+    if measurements is None:
+        truth = simulate_scenario(setup, seed, chunk=chunk, progress=cb("simulate"))
+    else:  # measured data: no simulation; inputs from the data when it has them
+        from uimm_jax.measured import truth_for_measurements
+
+        truth = truth_for_measurements(setup, measurements)
     t_sim = time.perf_counter() - t0
-    y = truth["y"] if measurements is None else np.asarray(measurements, np.float64)
+    y = truth["y"]
     t1 = time.perf_counter()
     _, outputs = filter_measurements(setup, y, truth["u"], chunk=chunk, progress=cb("filter"))
     t_filter = time.perf_counter() - t1
