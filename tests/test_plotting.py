@@ -187,6 +187,9 @@ def test_plot_mode_probabilities_long_run_is_decimated(tmp_path):
     assert len(line.get_xdata()) <= 20000
     assert np.max(line.get_ydata()) == 1.0
     _saved(fig, tmp_path, "mode_probs_long")
+    fig = plotting.plot_mode_probabilities(t, p, ["a", "b"], max_points=2000)
+    line = fig.axes[0].get_lines()[0]
+    assert len(line.get_xdata()) <= 2000 and np.max(line.get_ydata()) == 1.0
 
 
 def test_plot_mode_recognition(tmp_path):

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
+from matplotlib.ticker import LogLocator, NullFormatter, ScalarFormatter
 
 __all__ = [
     "fault_set_name",
@@ -154,6 +155,13 @@ def _as_2d(a: np.ndarray) -> np.ndarray:
     return a[:, None] if a.ndim == 1 else a
 
 
+def _plain_log_ticks(ax) -> None:
+    """Label a log y axis at 1, 2, 5 x 10^k with plain numbers (no minor labels)."""
+    ax.yaxis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
+    ax.yaxis.set_major_formatter(ScalarFormatter())
+    ax.yaxis.set_minor_formatter(NullFormatter())
+
+
 def _check_t(t: np.ndarray, *arrays: np.ndarray) -> np.ndarray:
     t = np.asarray(t)
     if t.ndim != 1:
@@ -175,6 +183,7 @@ def plot_mode_probabilities(
     events: Sequence[tuple[float, str]] = (),
     declarations: Sequence[tuple[float, str]] = (),
     title: str | None = None,
+    max_points: int = _MAX_POINTS,
 ) -> Figure:
     """Plot the mode probability of every model in the bank against time.
 
@@ -190,6 +199,8 @@ def plot_mode_probabilities(
         events: True fault onsets as ``(time, fault_name)`` pairs.
         declarations: Declarations as ``(time, fault_name)`` pairs.
         title: Figure title; a default is used when None.
+        max_points: Most samples drawn per curve (see :func:`_decimate`); rendering
+            time grows linearly with it (about 1 s per 5000 points of a noisy curve).
 
     Returns:
         The figure (one axes).
@@ -201,7 +212,7 @@ def plot_mode_probabilities(
         raise ValueError(f"{len(model_labels)} model labels for {m} models")
     colour = {label: _CYCLE[j % len(_CYCLE)] for j, label in enumerate(model_labels)}
 
-    td, pd = _decimate(t, np.asarray(mode_probs, dtype=float))
+    td, pd = _decimate(t, np.asarray(mode_probs, dtype=float), max_points=max_points)
     fig = Figure(figsize=(9.0, 4.2), layout="constrained")
     ax = fig.add_subplot()
     for j, label in enumerate(model_labels):
@@ -211,14 +222,16 @@ def plot_mode_probabilities(
         ax.axvline(time, color=colour.get(name, "k"), ls="--", lw=1.2, alpha=0.9)
         ax.annotate(
             f"{name} onset",
-            (time, 1.0),
+            (time, 0.5),
             xycoords=("data", "axes fraction"),
-            xytext=(3, -3),
+            xytext=(-2, 0),
             textcoords="offset points",
             rotation=90,
-            va="top",
+            ha="right",
+            va="center",
             fontsize=8,
             color=colour.get(name, "k"),
+            bbox={"boxstyle": "round,pad=0.2", "fc": "white", "ec": "none", "alpha": 0.8},
         )
     for time, name in declarations:
         c = colour.get(name, "k")
@@ -250,15 +263,18 @@ def plot_mode_recognition(
     fault_names: Sequence[str],
     *,
     title: str | None = None,
+    max_points: int = _MAX_POINTS,
 ) -> Figure:
     """Plot the recognised fault set against the true one on a categorical axis.
 
     Reproduces paper Figures 7 (simulation 1) and 9 (simulation 2). The y axis lists only
     the fault sets that occur in either array, ordered by number of faults and then by
-    code, labelled by :func:`fault_set_name`. The truth is a step line; the recognised
-    set is drawn as dots (strided when long) and samples where it disagrees with the
-    truth as red crosses (drawn from the full arrays, strided only if very many). The
-    fraction of agreeing samples, over all N samples, is written in the axes.
+    code, labelled by :func:`fault_set_name`. The truth is a wide grey step line through
+    its exact change points; the recognised set is drawn as dots (strided when long) and
+    the samples where it disagrees with the truth as red crosses, picked from the full
+    arrays (so isolated misrecognitions stay visible; strided only if more than
+    ``max_points``). The fraction of agreeing samples, over all N samples, is written in
+    the axes.
 
     Args:
         t: Time stamps in seconds, shape (N,).
@@ -266,6 +282,8 @@ def plot_mode_recognition(
         truth: True fault-set bitmasks, int array of shape (N,).
         fault_names: ``fault_names[j]`` names bit ``j``.
         title: Figure title; a default is used when None.
+        max_points: Most samples drawn per curve (see :func:`_decimate`); rendering
+            time grows linearly with it (about 1 s per 5000 points of a noisy curve).
 
     Returns:
         The figure (one axes).
@@ -293,13 +311,13 @@ def plot_mode_recognition(
         idx = np.concatenate([[0], change])
         ts = np.append(t[idx], t[-1])
         ys = np.append(truth_cat[idx], truth_cat[-1])
-        ax.step(ts, ys, where="post", color="k", lw=2.0, label="true mode", zorder=2)
+        ax.step(ts, ys, where="post", color="0.55", lw=7.0, alpha=0.4, label="true mode", zorder=2)
 
-    td, rd = _decimate(t, rec_cat)
+    td, rd = _decimate(t, rec_cat, max_points=max_points)
     ax.plot(td, rd, ls="none", marker=".", ms=3, color="C0", label="recognised", zorder=3)
     bad = np.flatnonzero(~agree)
     if bad.size:
-        bad = bad[:: math.ceil(bad.size / _MAX_POINTS)]
+        bad = bad[:: math.ceil(bad.size / max_points)]
         ax.plot(
             t[bad],
             rec_cat[bad],
@@ -328,7 +346,7 @@ def plot_mode_recognition(
         fontsize=9,
         bbox={"boxstyle": "round", "fc": "white", "ec": "0.7", "alpha": 0.9},
     )
-    ax.legend(loc="upper left", fontsize=9)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9)
     ax.set_title(title if title is not None else "Mode recognition (cf. paper Figs. 7/9)")
     return fig
 
@@ -349,6 +367,7 @@ def plot_states(
     units: Sequence[str] | None = None,
     residuals: bool = True,
     title: str | None = None,
+    max_points: int = _MAX_POINTS,
 ) -> Figure:
     """Plot true and estimated states, one panel per state.
 
@@ -365,6 +384,8 @@ def plot_states(
         units: Unit of each state (e.g. ``["m", "m/s", "Pa"]``), or None.
         residuals: Whether to add an error panel under each state.
         title: Figure title; a default is used when None.
+        max_points: Most samples drawn per curve (see :func:`_decimate`); rendering
+            time grows linearly with it (about 1 s per 5000 points of a noisy curve).
 
     Returns:
         The figure (S or 2 S axes sharing the time axis).
@@ -380,7 +401,7 @@ def plot_states(
     if units is not None and len(units) != s:
         raise ValueError(f"{len(units)} units for {s} states")
 
-    td, xt, xe, err = _decimate(t, x_true, x_est, x_est - x_true)
+    td, xt, xe, err = _decimate(t, x_true, x_est, x_est - x_true, max_points=max_points)
     rows_per_state = 2 if residuals else 1
     ratios = [3, 1] * s if residuals else [1] * s
     fig = Figure(figsize=(9.0, (2.6 if residuals else 2.0) * s + 0.6), layout="constrained")
@@ -444,6 +465,7 @@ def plot_model_count(
     ax = fig.add_subplot(1, ncols, 1)
     ax.semilogy(f, 2.0**f, "o-", color="C3", label="IMM: $2^F$")
     ax.semilogy(f, f + 1.0, "s-", color="C0", label="UIMM: $F+1$")
+    _plain_log_ticks(ax)
     ax.set_xticks(f)
     ax.set_xlabel("number of faults F")
     ax.set_ylabel("number of models")
@@ -467,6 +489,7 @@ def plot_model_count(
             if ok.any():
                 ax2.plot(fm[ok], v[ok], style, color=c, label=label)
         ax2.set_yscale("log")
+        _plain_log_ticks(ax2)
         ax2.set_xticks(np.unique(fm[np.isfinite(fm)]))
         ax2.set_xlabel("number of faults F")
         ax2.set_ylabel("time per step (µs)")
@@ -512,6 +535,7 @@ def plot_sweep(cells: Sequence[Mapping], *, title: str | None = None) -> Figure:
     fig = Figure(figsize=(11.0, 4.3), layout="constrained")
     ax_p, ax_d = fig.subplots(1, 2)
     delays_all = []
+    legend: list = []  # handles in plotting order (errorbar containers sort last otherwise)
     for mi, method in enumerate(methods):
         mcells = sorted((c for c in cells if c["method"] == method), key=lambda c: c["magnitude"])
         for fi, fault in enumerate(faults):
@@ -538,9 +562,11 @@ def plot_sweep(cells: Sequence[Mapping], *, title: str | None = None) -> Figure:
             if mag:
                 yerr = np.clip(np.array([lo, hi]), 0.0, None)
                 if np.isnan(yerr).all():
-                    ax_p.plot(mag, p, **style)
+                    legend.append(ax_p.plot(mag, p, **style)[0])
                 else:
-                    ax_p.errorbar(mag, p, yerr=np.nan_to_num(yerr), capsize=3, **style)
+                    legend.append(
+                        ax_p.errorbar(mag, p, yerr=np.nan_to_num(yerr), capsize=3, **style)
+                    )
             if dmag:
                 ax_d.plot(dmag, dly, **style)
                 delays_all.extend(dly)
@@ -557,8 +583,8 @@ def plot_sweep(cells: Sequence[Mapping], *, title: str | None = None) -> Figure:
     pos = [d for d in delays_all if d > 0]
     if pos and len(pos) == len(delays_all) and max(pos) / min(pos) > 50:
         ax_d.set_yscale("log")
-    if ax_p.get_legend_handles_labels()[0]:
-        ax_p.legend(fontsize=8)
+    if legend:
+        ax_p.legend(legend, [h.get_label() for h in legend], fontsize=8)
     fig.suptitle(title if title is not None else "Monte Carlo sweep over fault magnitude")
     return fig
 
