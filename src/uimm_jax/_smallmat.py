@@ -244,6 +244,10 @@ def quad_sym(a: Mat, p: Mat) -> Mat:
     return out
 
 
+#: A Cholesky pivot must exceed this many machine epsilons times its diagonal entry.
+PIVOT_REL_EPS = 16.0
+
+
 def chol(s: Mat, floor: Entry) -> tuple[Mat, Vec, Entry]:
     """Lower Cholesky factor of a symmetric matrix, with floored pivots.
 
@@ -254,7 +258,8 @@ def chol(s: Mat, floor: Entry) -> tuple[Mat, Vec, Entry]:
     Returns:
         ``(L, inv_diag, repaired)``: the factor, the reciprocals of its diagonal (solves
         multiply by them instead of dividing), and a boolean entry, true where a pivot had
-        to be raised to ``floor`` (the matrix was not numerically positive definite).
+        to be raised (the matrix was not numerically positive definite: a pivot at or
+        below ``max(floor, PIVOT_REL_EPS * eps * s_jj)``, which is then used instead).
     """
     n = len(s)
     L: Mat = [[0.0] * n for _ in range(n)]
@@ -262,9 +267,14 @@ def chol(s: Mat, floor: Entry) -> tuple[Mat, Vec, Entry]:
     repaired = None
     for j in range(n):
         d = minus(s[j][j], dot(L[j][:j], L[j][:j]))
-        bad = jnp.logical_not(d > floor)  # also catches NaN
+        # A pivot below the rounding noise of its diagonal entry carries no information:
+        # raise it to PIVOT_REL_EPS * eps * s_jj (diagonal loading) or to ``floor``,
+        # whichever is larger -- an absolute floor alone lets 1/pivot blow up to 1e60+.
+        rel = PIVOT_REL_EPS * float(jnp.finfo(jnp.result_type(d)).eps) * s[j][j]
+        thr = jnp.where(rel > floor, rel, floor)  # NaN s_jj -> floor
+        bad = jnp.logical_not(d > thr)  # also catches NaN
         repaired = bad if repaired is None else (repaired | bad)
-        d = jnp.where(bad, floor, d)
+        d = jnp.where(bad, thr, d)
         ljj = jnp.sqrt(d)
         inv = 1.0 / ljj
         L[j][j] = ljj

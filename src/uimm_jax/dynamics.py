@@ -12,7 +12,7 @@ A *dynamics* object turns a plant into what the bank kernel needs at each step:
 
 Arrays are batch-minor: ``theta`` is ``(P, *batch)``, the cache leaves carry the matrix
 indices first and the batch (runs..., models) last; ``x`` and the results are nested
-entry lists (:mod:`uimm_jax._smallmat`).
+arrays with the same layout (matrix axes first, batch last; :mod:`uimm_jax._wide`).
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from uimm_jax import _smallmat as sm
+from uimm_jax import _wide as wd
 from uimm_jax.models import LinearPlant, NonlinearPlant
 
 __all__ = ["LinearCache", "LinearDynamics", "NonlinearDynamics", "make_dynamics", "zoh"]
@@ -173,25 +174,18 @@ class LinearDynamics:
             A, B, None if self.const_C is not None else C, None if self.const_d is not None else d
         )
 
-    def predict(self, cache: LinearCache, x: list, u: list) -> tuple[list, list]:
-        """``x_pred = Ad x + Bd u`` and ``F = Ad`` (exact)."""
-        A = sm.from_array(cache.A, 2)
-        B = sm.from_array(cache.B, 2)
-        return sm.add(sm.matvec(A, x), sm.matvec(B, u)), A
+    def predict(self, cache: LinearCache, x: jax.Array, u: jax.Array):
+        """``x_pred = Ad x + Bd u`` and ``F = Ad`` (exact); ``x`` is ``(n, *batch)``."""
+        return wd.mv(cache.A, x) + wd.mv(cache.B, u), cache.A
 
-    def observe(self, cache: LinearCache, x: list) -> tuple[list, list]:
-        """``y_pred = C x + d`` and ``H = C``."""
-        C = (
-            sm.from_array(self.const_C, 2, constant=True)
-            if cache.C is None
-            else sm.from_array(cache.C, 2)
-        )
-        d = (
-            sm.from_array(self.const_d, 1, constant=True)
-            if cache.d is None
-            else sm.from_array(cache.d, 1)
-        )
-        return sm.add(sm.matvec(C, x), d), C
+    def observe(self, cache: LinearCache, x: jax.Array):
+        """``y_pred = C x + d`` and ``H = C`` (a NumPy constant when it is one)."""
+        C = self.const_C if cache.C is None else cache.C
+        d = cache.d
+        if d is None:
+            d = self.const_d
+            d = jnp.asarray(d, x.dtype).reshape(d.shape + (1,) * (x.ndim - 1))
+        return wd.mv(C, x) + d, C
 
 
 class NonlinearDynamics:
@@ -249,29 +243,23 @@ class NonlinearDynamics:
             res.append(o.reshape(o.shape[:-1] + batch))
         return res
 
-    def predict(self, theta: jax.Array, x: list, u: list) -> tuple[list, list]:
-        """``x_pred = f(x, u)`` and ``F = df/dx`` at ``x`` (eq. 19)."""
-        batch = theta.shape[1:]
-        dtype = theta.dtype
-        xa = sm.to_array(x, batch, dtype)
-        ua = sm.to_array(u, batch, dtype)
+    def predict(self, theta: jax.Array, x: jax.Array, u: jax.Array):
+        """``x_pred = f(x, u)`` and ``F = df/dx`` at ``x`` (eq. 19); batch-minor arrays."""
 
         def fn(xx, uu, th):
             return self.step_fn(xx, uu, th), jax.jacfwd(self.step_fn)(xx, uu, th)
 
-        xp, F = self._vmapped(fn, theta, xa, ua)
-        return sm.from_array(xp, 1), sm.from_array(F, 2)
+        xp, F = self._vmapped(fn, theta, x, u)
+        return xp, F
 
-    def observe(self, theta: jax.Array, x: list) -> tuple[list, list]:
+    def observe(self, theta: jax.Array, x: jax.Array):
         """``y_pred = h(x)`` and ``H = dh/dx`` at the prediction (eq. 20)."""
-        batch = theta.shape[1:]
-        xa = sm.to_array(x, batch, theta.dtype)
 
         def fn(xx, th):
             return self.obs_fn(xx, th), jax.jacfwd(self.obs_fn)(xx, th)
 
-        yp, H = self._vmapped(fn, theta, xa)
-        return sm.from_array(yp, 1), sm.from_array(H, 2)
+        yp, H = self._vmapped(fn, theta, x)
+        return yp, H
 
 
 def make_dynamics(plant, dt: float, reference_thetas: np.ndarray):

@@ -22,13 +22,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from uimm_jax._smallmat import sparsity_pattern
 from uimm_jax.dynamics import LinearCache, MatrixBankDynamics
 from uimm_jax.errors import UIMMWarning
 from uimm_jax.imm import IMMParams, IMMState, imm_step
 from uimm_jax.validation import (
     as_float_array,
+    check_bank,
     check_covariance,
+    check_gate,
+    check_no_inf,
     check_probabilities,
     check_shape,
     check_stochastic,
@@ -96,10 +98,8 @@ def _warn_if_float32(dtype) -> None:
 _MATRIX_DYN = MatrixBankDynamics()
 
 
-@functools.partial(jax.jit, static_argnames=("gate", "keep_model_mean", "q_pattern", "r_pattern"))
-def _imm_scan(
-    cache, params, state0, inputs, measurements, gate, keep_model_mean, q_pattern, r_pattern
-):
+@functools.partial(jax.jit, static_argnames=("gate", "keep_model_mean"))
+def _imm_scan(cache, params, state0, inputs, measurements, gate, keep_model_mean):
     def body(state, uy):
         u, y = uy
         new, info = imm_step(
@@ -110,8 +110,6 @@ def _imm_scan(
             u,
             y,
             gate=gate,
-            q_pattern=q_pattern,
-            r_pattern=r_pattern,
         )
         out = (
             info.log_mode_probs,
@@ -162,6 +160,8 @@ def imm_filter(
         ValueError: on inconsistent shapes, a non-stochastic transition matrix or a
             covariance that is not symmetric PSD; the message names the argument.
     """
+    check_bank(bank)
+    gate = check_gate(gate)
     A = as_float_array(bank.A, "bank.A")
     if A.ndim != 3 or A.shape[1] != A.shape[2]:
         raise ValueError(f"bank.A: expected shape (M, n, n), got {A.shape}")
@@ -172,6 +172,7 @@ def imm_filter(
     m = C.shape[1]
     y = as_float_array(measurements, "measurements")
     check_shape(y, (None, m), "measurements", f"one row of {m} measured channels per step")
+    check_no_inf(y, "measurements")
     N = y.shape[0]
     if bank.B is None:
         B = np.zeros((M, n, 0))
@@ -241,8 +242,6 @@ def imm_filter(
         jnp.asarray(y, dtype),
         gate,
         return_model_means,
-        sparsity_pattern(Q),
-        sparsity_pattern(R),
     )
     log_mu, mean, cov, mll, inc, health = out[:6]
     model_mean = jnp.moveaxis(out[6], -1, 1) if return_model_means else None

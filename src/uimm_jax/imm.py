@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 
 from uimm_jax import _smallmat as sm
+from uimm_jax import _wide as wd
 from uimm_jax.kalman import kf_predict_cov, kf_update
 
 __all__ = ["IMMParams", "IMMState", "StepInfo", "imm_step", "log_normalize", "mix"]
@@ -99,8 +100,13 @@ def log_normalize(log_w: jax.Array, axis: int = -1) -> tuple[jax.Array, jax.Arra
     """
     mx = jnp.max(log_w, axis=axis, keepdims=True)
     safe = jnp.where(jnp.isfinite(mx), mx, 0.0)
-    lse = jnp.log(jnp.sum(jnp.exp(log_w - safe), axis=axis, keepdims=True)) + safe
-    out = jnp.where(jnp.isfinite(lse), log_w - jnp.where(jnp.isfinite(lse), lse, 0.0), log_w)
+    shifted = log_w - safe
+    log_s = jnp.log(jnp.sum(jnp.exp(shifted), axis=axis, keepdims=True))
+    lse = log_s + safe
+    ok = jnp.isfinite(lse)
+    # Subtract in the shifted domain: with |max| > ~1e16 (an innovation of 1e8 sigma)
+    # ``log_w - lse`` would lose ``log_s`` to rounding and return probabilities summing to M.
+    out = jnp.where(ok, shifted - jnp.where(ok, log_s, 0.0), log_w)
     return out, jnp.squeeze(lse, axis)
 
 
@@ -114,30 +120,36 @@ def mix(mean: jax.Array, cov: jax.Array, log_mu: jax.Array, log_trans: jax.Array
         log_trans: ``(M, M)`` or ``(*runs, M, M)``.
 
     Returns:
-        ``(x0, P0, log_c)``: mixed means and covariances as nested entries of shape
-        ``(*runs, M)``, and the log predicted mode probabilities ``log c_j``.
+        ``(x0, P0, log_c)``: mixed means ``(n, *runs, M)`` and covariances
+        ``(n, n, *runs, M)`` of each model, and the log predicted mode probabilities
+        ``log c_j`` ``(*runs, M)``.
     """
-    n = mean.shape[0]
     M = mean.shape[-1]
     if M <= UNROLL_MAX_MODELS:
-        terms = [log_trans[..., i, :] + log_mu[..., i : i + 1] for i in range(M)]
-        log_c = _lse_list(terms)
-        ok = jnp.isfinite(log_c)
+        # log c_j = s + log sum_i p_ij exp(log mu_i - s), one shift s = max_i log mu_i for
+        # every j (a log-sum-exp with a shared shift: M exponentials instead of M^2).
+        # The largest term exp(log mu_i - s) is 1, so c_j underflows only if every
+        # p_ij mu_i / mu_max does, i.e. below 1e-308.
+        top = jnp.max(log_mu, axis=-1, keepdims=True)
+        shift = jnp.where(jnp.isfinite(top), top, 0.0)
+        mu_s = jnp.exp(log_mu - shift)  # (*runs, M), max entry 1
+        p = jnp.exp(log_trans)
+        terms = [p[..., i, :] * mu_s[..., i : i + 1] for i in range(M)]
+        c = sum(terms)  # (*runs, M) scaled predicted probabilities
+        ok = c > 0
+        inv_c = 1.0 / jnp.where(ok, c, 1.0)
+        log_c = jnp.where(ok, jnp.log(jnp.where(ok, c, 1.0)) + shift, -jnp.inf)
         eye = jnp.eye(M, dtype=mean.dtype)
-        w = [
-            jnp.where(ok, jnp.exp(t - jnp.where(ok, log_c, 0.0)), eye[i])
-            for i, t in enumerate(terms)
-        ]
+        w = [jnp.where(ok, t * inv_c, eye[i]) for i, t in enumerate(terms)]
         w, log_c = sm.materialize((w, log_c))
-        xs = [[mean[a][..., i : i + 1] for i in range(M)] for a in range(n)]
-        x0 = [sum(w[i] * xs[a][i] for i in range(M)) for a in range(n)]
-        dx = [[xs[a][i] - x0[a] for i in range(M)] for a in range(n)]
-        P0 = [[None] * n for _ in range(n)]
-        for a in range(n):
-            for b in range(a, n):
-                v = sum(w[i] * (cov[a, b][..., i : i + 1] + dx[a][i] * dx[b][i]) for i in range(M))
-                P0[a][b] = v
-                P0[b][a] = v
+        # Eq. (17) with the spread-of-means term per pair (i, j): exact, no cancellation
+        # even when the means are far apart (after an outlier, say).
+        xs = [mean[..., i : i + 1] for i in range(M)]
+        x0 = sum(w[i] * xs[i] for i in range(M))
+        P0 = 0.0
+        for i in range(M):
+            dx = xs[i] - x0
+            P0 = P0 + w[i] * (cov[..., i : i + 1] + dx[:, None] * dx[None, :])
         return x0, P0, log_c
     # Vectorised path for large banks (combinatorial IMM): weights (*runs, Mi, Mj).
     t = log_trans + log_mu[..., :, None]
@@ -145,28 +157,23 @@ def mix(mean: jax.Array, cov: jax.Array, log_mu: jax.Array, log_trans: jax.Array
     ok = jnp.isfinite(log_c)
     eye = jnp.eye(M, dtype=mean.dtype)
     w = jnp.where(ok[..., None, :], jnp.exp(t - jnp.where(ok, log_c, 0.0)[..., None, :]), eye)
-    # Centre on the probability-weighted mean to keep the spread-of-means term exact.
+    # Per-pair spreads would cost O(n^2 M^2) memory here; instead use the second-moment form
+    # centred on the probability-weighted mean, which is exact algebraically and loses only
+    # ~eps * spread^2 / P relative precision (fine unless the means differ by >1e6 sigma).
     ref = jnp.sum(jnp.exp(log_mu) * mean, axis=-1, keepdims=True)
     d = mean - ref  # (n, *runs, M)
     x0d = jnp.einsum("a...i,...ij->a...j", d, w)
     second = jnp.einsum("ab...i,...ij->ab...j", cov + d[:, None] * d[None, :], w)
-    P0a = second - x0d[:, None] * x0d[None, :]
-    x0a = x0d + ref
-    return sm.from_array(x0a, 1), sm.from_array(P0a, 2), log_c
+    P0 = second - x0d[:, None] * x0d[None, :]
+    return x0d + ref, P0, log_c
 
 
-def combine(mean: list, cov: list, log_mu: jax.Array):
-    """Combined estimate and covariance, paper eqs. (30)-(31); entries ``(*runs, M)``."""
+def combine(mean: jax.Array, cov: jax.Array, log_mu: jax.Array):
+    """Combined estimate and covariance, paper eqs. (30)-(31), over the last (model) axis."""
     mu = jnp.exp(log_mu)
-    n = len(mean)
-    xc = [jnp.sum(mu * mean[a], axis=-1) for a in range(n)]
-    d = [mean[a] - xc[a][..., None] for a in range(n)]
-    Pc = [[None] * n for _ in range(n)]
-    for a in range(n):
-        for b in range(a, n):
-            v = jnp.sum(mu * (cov[a][b] + d[a] * d[b]), axis=-1)
-            Pc[a][b] = v
-            Pc[b][a] = v
+    xc = jnp.sum(mu * mean, axis=-1)
+    d = mean - xc[..., None]
+    Pc = jnp.sum(mu * (cov + d[:, None] * d[None, :]), axis=-1)
     return xc, Pc
 
 
@@ -181,8 +188,6 @@ def imm_step(
     active: jax.Array | None = None,
     gate: float | None = None,
     with_cov: bool = True,
-    q_pattern: tuple | None = None,
-    r_pattern: tuple | None = None,
 ) -> tuple[IMMState, StepInfo]:
     """One IMM cycle: mix, predict with ``u``, update with ``y``, re-weight, combine.
 
@@ -198,26 +203,20 @@ def imm_step(
             best-fitting active model has ``e' S^-1 e > gate``, the measurement is treated
             as missing for the whole bank (an outlier), and the step is flagged.
         with_cov: compute the combined covariance (eq. 31) for the info.
-        q_pattern: static non-zero pattern of ``Q`` (entries outside it are treated as
-            structural zeros; see :func:`uimm_jax._smallmat.sparsity_pattern`).
-        r_pattern: static non-zero pattern of ``R``.
 
     Returns:
         ``(new_state, info)``.
     """
     dtype = state.mean.dtype
-    n = state.mean.shape[0]
+    nb = state.log_mode_probs.ndim  # batch axes (runs..., models)
     x0, P0, log_c = mix(state.mean, state.cov, state.log_mode_probs, params.log_transition)
-    x0, P0, log_c = sm.materialize((x0, P0, log_c))
-    u_e = [u[i][..., None] for i in range(u.shape[0])]
-    y_e = [y[c][..., None] for c in range(y.shape[0])]
-    x_pred, F = dyn.predict(cache, x0, u_e)
-    P_pred = kf_predict_cov(F, P0, sm.from_array_pattern(params.Q, q_pattern))
+    x0, P0 = sm.materialize((x0, P0))
+    x_pred, F = dyn.predict(cache, x0, u[..., None])
+    P_pred = kf_predict_cov(F, P0, wd.expand(params.Q, nb))
     y_pred, H = dyn.observe(cache, x_pred)
     x_pred, P_pred, y_pred = sm.materialize((x_pred, P_pred, y_pred))
     floor = float(jnp.finfo(dtype).tiny) ** 0.5
-    R = sm.from_array_pattern(params.R, r_pattern)
-    res = kf_update(x_pred, P_pred, y_e, y_pred, H, R, floor)
+    res = kf_update(x_pred, P_pred, y[..., None], y_pred, H, wd.expand(params.R, nb), floor)
     x_new, P_new, ll, nis, repaired = sm.materialize(
         (res.mean, res.cov, res.loglik, res.nis, res.repaired)
     )
@@ -225,30 +224,25 @@ def imm_step(
         active = jnp.ones(state.log_mode_probs.shape, bool)
     health = jnp.zeros(state.log_mode_probs.shape[:-1], jnp.int32)
     health |= jnp.where(jnp.any(repaired & active, axis=-1), HEALTH_COV_REPAIRED, 0)
-    missing = jnp.zeros(health.shape, bool)
-    for c in range(y.shape[0]):
-        missing = missing | ~jnp.isfinite(y[c])
+    missing = jnp.any(~jnp.isfinite(y), axis=0)
     health |= jnp.where(missing, HEALTH_MISSING, 0)
     if gate is not None:
         best = jnp.min(jnp.where(active, nis, jnp.inf), axis=-1)
         reject = best > gate  # (*runs,)
         rj = reject[..., None]
-        x_new = [jnp.where(rj, xp, xn) for xp, xn in zip(x_pred, x_new, strict=True)]
-        P_new = [
-            [jnp.where(rj, pp, pn) for pp, pn in zip(rp, rn, strict=True)]
-            for rp, rn in zip(P_pred, P_new, strict=True)
-        ]
+        x_new = jnp.where(rj, x_pred, x_new)
+        P_new = jnp.where(rj, P_pred, P_new)
         ll = jnp.where(rj, 0.0, ll)
         health |= jnp.where(reject, HEALTH_GATED, 0)
     # Non-finite guard: a model whose update is not finite keeps its previous posterior.
-    finite = jnp.isfinite(ll)
-    for a in range(n):
-        finite &= jnp.isfinite(x_new[a])
-        for b in range(a, n):
-            finite &= jnp.isfinite(P_new[a][b])
+    finite = (
+        jnp.isfinite(ll)
+        & jnp.all(jnp.isfinite(x_new), axis=0)
+        & jnp.all(jnp.isfinite(P_new), axis=(0, 1))
+    )
     health |= jnp.where(jnp.any(~finite & active, axis=-1), HEALTH_NONFINITE, 0)
-    x_new = [jnp.where(finite, x_new[a], state.mean[a]) for a in range(n)]
-    P_new = [[jnp.where(finite, P_new[a][b], state.cov[a, b]) for b in range(n)] for a in range(n)]
+    x_new = jnp.where(finite, x_new, state.mean)
+    P_new = jnp.where(finite, P_new, state.cov)
     very_negative = jnp.asarray(jnp.finfo(dtype).min / 4, dtype)
     ll = jnp.where(finite, ll, very_negative)
     # Mode probabilities, eq. (28), in log space.
@@ -256,20 +250,13 @@ def imm_step(
     log_mu, lse = log_normalize(log_post)
     # If nothing is possible (every active model has c_j = 0), keep the previous probs.
     log_mu = jnp.where(jnp.isfinite(lse)[..., None], log_mu, state.log_mode_probs)
-    x_new, P_new, log_mu = sm.materialize((x_new, P_new, log_mu))
     xc, Pc = combine(x_new, P_new, log_mu)
-    new_state = IMMState(
-        sm.to_array(x_new, state.log_mode_probs.shape, dtype),
-        sm.to_array(P_new, state.log_mode_probs.shape, dtype),
-        log_mu,
-    )
-    batch = state.log_mode_probs.shape[:-1]
     info = StepInfo(
         log_mode_probs=log_mu,
         model_loglik=ll,
         loglik_increment=jnp.where(jnp.isfinite(lse), lse, very_negative),
-        mean=sm.to_array(xc, batch, dtype),
-        cov=sm.to_array(Pc, batch, dtype) if with_cov else jnp.zeros((0,), dtype),
+        mean=xc,
+        cov=Pc if with_cov else jnp.zeros((0,), dtype),
         health=health,
     )
-    return new_state, info
+    return IMMState(x_new, P_new, log_mu), info

@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 
 from uimm_jax import _smallmat as sm
+from uimm_jax import _wide as wd
 
 __all__ = ["UpdateResult", "ekf_predict", "ekf_update", "kf_predict_cov", "kf_update"]
 
@@ -29,80 +30,86 @@ LOG_2PI = math.log(2.0 * math.pi)
 
 
 class UpdateResult(NamedTuple):
-    """Outcome of a measurement update for a bank (entries have the batch shape).
+    """Outcome of a measurement update for a bank (batch = runs..., models).
 
     Attributes:
-        mean: posterior mean (list of n entries).
-        cov: posterior covariance (n x n nested entries).
-        loglik: ``log N(e; 0, S)`` of the observed channels (eq. 27 in log space).
-        nis: normalised innovation squared ``e' S^-1 e`` (for gating).
-        repaired: true where ``S`` was not numerically positive definite.
-        num_observed: number of observed (finite) channels.
+        mean: ``(n, *batch)`` posterior mean.
+        cov: ``(n, n, *batch)`` posterior covariance.
+        loglik: ``(*batch)`` ``log N(e; 0, S)`` of the observed channels (eq. 27, log space).
+        nis: ``(*batch)`` normalised innovation squared ``e' S^-1 e`` (for gating).
+        repaired: ``(*batch)`` true where ``S`` was not numerically positive definite.
+        num_observed: ``(*batch)`` number of observed (finite) channels.
     """
 
-    mean: list
-    cov: list
+    mean: jax.Array
+    cov: jax.Array
     loglik: jax.Array
     nis: jax.Array
     repaired: jax.Array
     num_observed: jax.Array
 
 
-def kf_predict_cov(F: list, P: list, Q: list) -> list:
-    """Predicted covariance ``F P F' + Q`` (eq. 22), symmetric by construction."""
-    return sm.add(sm.quad_sym(F, P), Q)
+def kf_predict_cov(F, P: jax.Array, Q: jax.Array) -> jax.Array:
+    """Predicted covariance ``F P F' + Q`` (eq. 22) of a bank; ``Q`` broadcasts."""
+    return wd.sym(wd.mm(wd.mm(F, P), wd.tr(F))) + Q
 
 
 def kf_update(
-    x: list, P: list, y: list, y_pred: list, H: list, R: list, floor: float
+    x: jax.Array, P: jax.Array, y: jax.Array, y_pred: jax.Array, H, R, floor: float
 ) -> UpdateResult:
     """Measurement update of a bank (eqs. 21, 23-27).
 
     Args:
-        x: predicted mean, n entries.
-        P: predicted covariance, n x n.
-        y: measurement, m entries (non-finite = missing channel).
-        y_pred: predicted measurement ``h(x)``, m entries.
-        H: measurement Jacobian, m x n.
-        R: measurement noise covariance, m x m.
+        x: ``(n, *batch)`` predicted mean.
+        P: ``(n, n, *batch)`` predicted covariance.
+        y: ``(m, ...)`` measurement broadcastable to ``(m, *batch)`` (non-finite = missing).
+        y_pred: ``(m, *batch)`` predicted measurement ``h(x)``.
+        H: ``(m, n, *batch)`` measurement Jacobian, or a constant NumPy ``(m, n)``.
+        R: ``(m, m, ...)`` measurement noise covariance (broadcastable).
         floor: smallest admissible squared Cholesky pivot of ``S``.
 
     Returns:
         An :class:`UpdateResult`.
     """
-    m = len(y)
-    n = len(x)
-    valid = [jnp.isfinite(yc) for yc in y]
-    e = [jnp.where(v, yc - yp, 0.0) for v, yc, yp in zip(valid, y, y_pred, strict=True)]
+    m = y_pred.shape[0]
+    n = x.shape[0]
+    valid = jnp.isfinite(y)
+    e = jnp.where(valid, y - y_pred, 0.0)
+    valid = jnp.broadcast_to(valid, e.shape)
     # Missing channels: zero their rows/columns of S and P H' and put 1 on S's diagonal.
-    # Then the gain's column for that channel is exactly zero, so H and R themselves need no
-    # masking (and structural zeros/ones of a constant H stay folded at trace time).
-    PHt = sm.matmul(P, sm.transpose(H))  # n x m
-    S = sm.add(sm.quad_sym(H, P), R)
-    S = [
-        [
-            jnp.where(valid[c], S[c][c], 1.0)
-            if c == d
-            else jnp.where(valid[c] & valid[d], S[c][d], 0.0)
-            for d in range(m)
-        ]
-        for c in range(m)
-    ]
-    PHt = [[jnp.where(valid[c], PHt[i][c], 0.0) for c in range(m)] for i in range(n)]
-    S, PHt = sm.materialize((S, PHt))
-    L, inv_diag, repaired = sm.chol(S, floor)
-    L, inv_diag, e = sm.materialize((L, inv_diag, e))
-    # Row i of K = P H' S^-1 solves S k_i = (P H')_i (S symmetric).
-    K = [sm.chol_solve_vec_t(L, sm.chol_solve_vec(L, row, inv_diag), inv_diag) for row in PHt]
-    K = sm.materialize(K)
-    v = sm.chol_solve_vec(L, e, inv_diag)
+    # The gain's column for such a channel is then exactly zero, so H and R need no
+    # masking (and a constant H = I stays free).
+    PHt = wd.mm(P, wd.tr(H))  # (n, m, *batch)
+    S = wd.mm(H, PHt) + R
+    eye = jnp.eye(m, dtype=x.dtype).reshape((m, m) + (1,) * (x.ndim - 1))
+    S = jnp.where(valid[:, None] & valid[None, :], S, eye)
+    PHt = jnp.where(valid[None, :], PHt, 0.0)
+    S, PHt, e = sm.materialize((S, PHt, e))
+    L, inv_diag, repaired = sm.chol([[S[c, d] for d in range(m)] for c in range(m)], floor)
+    L, inv_diag = sm.materialize((L, inv_diag))
+    # Rows of K = P H' S^-1: forward then back substitution, vectorised over the n rows.
+    z = []
+    for c in range(m):
+        acc = PHt[:, c]
+        for k in range(c):
+            acc = acc - z[k] * L[c][k]
+        z.append(acc * inv_diag[c])
+    kcols = [None] * m
+    for c in reversed(range(m)):
+        acc = z[c]
+        for k in range(c + 1, m):
+            acc = acc - kcols[k] * L[k][c]
+        kcols[c] = acc * inv_diag[c]
+    K = sm.materialize(jnp.stack(kcols, axis=1))  # (n, m, *batch)
+    v = sm.chol_solve_vec(L, [e[c] for c in range(m)], inv_diag)
     nis = sm.dot(v, v)
     logdet = sm.chol_logdet(L)
-    num_obs = sum(vv.astype(jnp.int32) for vv in valid)
+    num_obs = jnp.sum(valid.astype(jnp.int32), axis=0)
     loglik = -0.5 * (nis + logdet) - (0.5 * LOG_2PI) * num_obs.astype(nis.dtype)
-    x_new = sm.add(x, sm.matvec(K, e))
-    IKH = sm.materialize(sm.sub(sm.eye(n), sm.matmul(K, H)))
-    P_new = sm.add(sm.quad_sym(IKH, P), sm.quad_sym(K, R))
+    x_new = x + wd.mv(K, e)
+    eye_n = jnp.eye(n, dtype=x.dtype).reshape((n, n) + (1,) * (x.ndim - 1))
+    IKH = sm.materialize(eye_n - wd.mm(K, H))
+    P_new = wd.sym(wd.mm(wd.mm(IKH, P), wd.tr(IKH)) + wd.mm(wd.mm(K, R), wd.tr(K)))
     return UpdateResult(x_new, P_new, loglik, nis, repaired, num_obs)
 
 
@@ -125,11 +132,7 @@ def ekf_predict(mean, cov, u, f, Q):
     """
     mean = jnp.asarray(mean)
     F = jax.jacfwd(f)(mean, u)
-    x_pred = f(mean, u)
-    P = kf_predict_cov(
-        sm.from_array(F, 2), sm.from_array(jnp.asarray(cov), 2), sm.from_array(jnp.asarray(Q), 2)
-    )
-    return x_pred, sm.to_array(P, (), x_pred.dtype)
+    return f(mean, u), kf_predict_cov(F, jnp.asarray(cov), jnp.asarray(Q))
 
 
 def ekf_update(mean, cov, y, h, R):
@@ -147,14 +150,13 @@ def ekf_update(mean, cov, y, h, R):
     """
     mean = jnp.asarray(mean)
     H = jax.jacfwd(h)(mean)
-    y_pred = h(mean)
     res = kf_update(
-        sm.from_array(mean, 1),
-        sm.from_array(jnp.asarray(cov), 2),
-        sm.from_array(jnp.asarray(y, mean.dtype), 1),
-        sm.from_array(y_pred, 1),
-        sm.from_array(H, 2),
-        sm.from_array(jnp.asarray(R), 2),
+        mean,
+        jnp.asarray(cov),
+        jnp.asarray(y, mean.dtype),
+        h(mean),
+        H,
+        jnp.asarray(R),
         _floor_for(mean.dtype),
     )
-    return (sm.to_array(res.mean, (), mean.dtype), sm.to_array(res.cov, (), mean.dtype), res.loglik)
+    return res.mean, res.cov, res.loglik

@@ -24,13 +24,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from uimm_jax._smallmat import sparsity_pattern
 from uimm_jax.bank import FaultTable, fault_table
 from uimm_jax.dynamics import make_dynamics
 from uimm_jax.errors import UIMMWarning
 from uimm_jax.filtering import scan_chunked
 from uimm_jax.simulate import InputSignal, TruthPlan, input_value, noise_factor, truth_step
 from uimm_jax.uimm import Diagnoser, DiagParams, build_diagnoser, make_params
+from uimm_jax.validation import check_positive_int, check_run_data, check_seed, check_setup_args
 
 __all__ = [
     "RunResult",
@@ -77,15 +77,14 @@ class RunSetup:
 
 
 @functools.lru_cache(maxsize=64)
-def _cached_diagnoser(plant, dt, method, gate, faults_key, nominal_key, q_pattern, r_pattern):
+def _cached_diagnoser(plant, dt, method, gate, faults_key, nominal_key):
     nominal = np.asarray(nominal_key)
     table = fault_table(plant.param_names, nominal, {k: dict(v) for k, v in faults_key})
     refs = [nominal] + [
         table.theta_numpy(np.eye(table.num_faults, dtype=bool)[j]) for j in range(table.num_faults)
     ]
     dyn = make_dynamics(plant, dt, np.array(refs))
-    diag = build_diagnoser(method, dyn, table, gate=gate, q_pattern=q_pattern, r_pattern=r_pattern)
-    return diag, table
+    return build_diagnoser(method, dyn, table, gate=gate), table
 
 
 def resolve_filter_settings(scenario, method: str) -> tuple[np.ndarray, np.ndarray]:
@@ -137,6 +136,7 @@ def setup_scenario(
         dtype: float dtype (default: JAX's default float; float64 with x64 enabled).
         magnitude_scale: multiplies every event's magnitude (truth only).
     """
+    check_setup_args(scenario, method, dtype, magnitude_scale)
     dtype = dtype or jnp.asarray(0.0).dtype
     method = method or scenario.filter.method
     plant = scenario.plant
@@ -150,8 +150,6 @@ def setup_scenario(
         gate,
         faults_key,
         tuple(nominal.tolist()),
-        sparsity_pattern(scenario.process_noise),
-        sparsity_pattern(scenario.measurement_noise),
     )
     P, mu0 = resolve_filter_settings(scenario, method)
     flt = scenario.filter
@@ -298,6 +296,7 @@ def filter_measurements(
         ``health`` (N,) and, with ``with_cov``, ``cov`` (N, n, n).
     """
     sc = setup.scenario
+    y, u = check_run_data(setup, y, u, chunk)
     dtype = setup.params.imm.Q.dtype
     ys = jnp.asarray(y, dtype)
     N = ys.shape[0]
@@ -352,6 +351,8 @@ def run_scenario(
     Returns:
         A :class:`RunResult`.
     """
+    check_seed(seed)
+    check_positive_int(chunk, "chunk")
     setup = setup_scenario(scenario, method)
     cb = (
         (lambda stage: lambda d, t, e: progress(stage, d, t, e))

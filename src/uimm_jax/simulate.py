@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from uimm_jax import _smallmat as sm
+from uimm_jax import _wide as wd
 
 __all__ = ["InputSignal", "TruthPlan", "input_value", "noise_factor", "truth_step"]
 
@@ -129,9 +129,7 @@ def truth_step(
     K = plan.true_codes.shape[-1]
     onehot = ph[..., None] == jnp.arange(K)
     cache = jax.tree.map(lambda leaf: _select(leaf, onehot)[..., None], plan.cache)
-    xe = [x[a][..., None] for a in range(n)]
-    ue = [u[i][..., None] for i in range(u.shape[0])]
-    xn, _ = dyn.predict(cache, xe, ue)
+    xn, _ = dyn.predict(cache, x[..., None], u[..., None])
     yp, _ = dyn.observe(cache, xn)
     flat_keys = key.reshape(-1, key.shape[-1])
     z = jax.vmap(lambda kk: jax.random.normal(jax.random.fold_in(kk, k), (n + m,), x.dtype))(
@@ -139,9 +137,7 @@ def truth_step(
     )
     z = jnp.moveaxis(z, 0, -1).reshape((n + m,) + (runs if key.ndim > 1 else ()))
     z = jnp.broadcast_to(z, (n + m,) + runs)
-    w = sm.matvec(sm.from_array(plan.Gq, 2), [z[i] for i in range(n)])
-    v = sm.matvec(sm.from_array(plan.Gr, 2), [z[n + i] for i in range(m)])
-    x_next = jnp.stack([jnp.squeeze(xn[a], -1) + w[a] for a in range(n)])
-    y = jnp.stack([jnp.squeeze(yp[c], -1) + v[c] for c in range(m)])
+    x_next = xn[..., 0] + wd.mv(plan.Gq, z[:n])
+    y = yp[..., 0] + wd.mv(plan.Gr, z[n:])
     code = jnp.sum(jnp.where(onehot, plan.true_codes, 0), axis=-1)
     return x_next, y, code

@@ -41,6 +41,7 @@ import numpy as np
 
 from uimm_jax.bank import FaultTable, combinatorial_sets, set_codes, thetas_for_sets, uimm_sets
 from uimm_jax.imm import IMMParams, IMMState, StepInfo, imm_step, log_normalize
+from uimm_jax.validation import check_gate
 
 __all__ = ["DiagInfo", "DiagParams", "DiagState", "Diagnoser", "build_diagnoser"]
 
@@ -105,17 +106,12 @@ class Diagnoser:
         dyn: the dynamics object (:mod:`uimm_jax.dynamics`).
         table: the :class:`~uimm_jax.bank.FaultTable`.
         gate: optional chi-square innovation gate.
-        q_pattern: static non-zero pattern of ``Q`` (``None``: dense).  Entries outside it
-            are structural zeros: a tuned ``Q`` must keep the pattern.
-        r_pattern: static non-zero pattern of ``R`` (``None``: dense).
     """
 
     method: Literal["uimm", "imm"]
     dyn: Any
     table: FaultTable
     gate: float | None = None
-    q_pattern: tuple | None = None
-    r_pattern: tuple | None = None
 
     @property
     def num_faults(self) -> int:
@@ -221,8 +217,6 @@ class Diagnoser:
             active=active,
             gate=self.gate,
             with_cov=with_cov,
-            q_pattern=self.q_pattern,
-            r_pattern=self.r_pattern,
         )
         log_mu = imm_state.log_mode_probs
         cand = jnp.argmax(log_mu, axis=-1).astype(jnp.int32)
@@ -280,8 +274,6 @@ def build_diagnoser(
     table: FaultTable,
     *,
     gate: float | None = None,
-    q_pattern: tuple | None = None,
-    r_pattern: tuple | None = None,
 ) -> Diagnoser:
     """Build a UIMM (``F + 1`` models) or combinatorial IMM (``2^F`` models) diagnoser.
 
@@ -290,19 +282,20 @@ def build_diagnoser(
         dyn: dynamics object for the plant (:func:`uimm_jax.dynamics.make_dynamics`).
         table: the fault table of the bank.
         gate: optional chi-square innovation gate.
-        q_pattern: static non-zero pattern of ``Q`` (see :class:`Diagnoser`).
-        r_pattern: static non-zero pattern of ``R``.
     """
     if method not in ("uimm", "imm"):
         raise ValueError(f"method: expected 'uimm' or 'imm', got {method!r}")
+    if not isinstance(table, FaultTable):
+        raise TypeError(
+            f"table: expected a FaultTable (uimm_jax.fault_table(...)), got {type(table).__name__}"
+        )
+    gate = check_gate(gate)
     if method == "imm" and table.num_faults > 16:
         raise ValueError(
             f"method 'imm' with {table.num_faults} faults needs "
             f"2^{table.num_faults} models; use 'uimm' or fewer faults"
         )
-    return Diagnoser(
-        method, dyn, table, None if gate is None else float(gate), q_pattern, r_pattern
-    )
+    return Diagnoser(method, dyn, table, None if gate is None else float(gate))
 
 
 def make_params(transition, Q, R, threshold, hold, dtype=None) -> DiagParams:
