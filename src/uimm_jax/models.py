@@ -71,6 +71,9 @@ class _PlantBase:
     extra_faults: tuple[Fault, ...] = ()
 
     def __post_init__(self):
+        from uimm_jax.validation import check_plant_structure
+
+        check_plant_structure(self)
         if len(self.param_names) != len(self.nominal_values):
             raise ValueError(
                 f"plant {self.name!r}: param_names has {len(self.param_names)} entries but "

@@ -8,6 +8,7 @@ outside ``jit``; traced values are passed through unchecked.
 from __future__ import annotations
 
 import warnings
+import weakref
 
 import numpy as np
 
@@ -46,7 +47,8 @@ def check_shape(x, shape: tuple, name: str, hint: str = "") -> None:
     s = np.shape(x)
     ok = len(s) == len(shape) and all(e is None or e == g for e, g in zip(shape, s, strict=True))
     if not ok:
-        want = "(" + ", ".join("?" if e is None else str(e) for e in shape) + ")"
+        want = "(" + ", ".join("?" if e is None else str(e) for e in shape)
+        want += ",)" if len(shape) == 1 else ")"
         raise ValueError(
             f"{name}: expected shape {want}, got {tuple(s)}" + (f"; {hint}" if hint else "")
         )
@@ -82,7 +84,7 @@ def check_stochastic(p, name: str = "transition") -> np.ndarray:
     if bad.size:
         i = int(bad[0])
         raise ValueError(
-            f"{name}: row {i} sums to {sums[i]!r}, not 1; each row i must hold "
+            f"{name}: row {i} sums to {float(sums[i])!r}, not 1; each row i must hold "
             "P(mode j at k+1 | mode i at k) for every j and sum to 1"
         )
     return a
@@ -117,8 +119,8 @@ def check_covariance(c, n: int, name: str, *, definite: bool = False) -> np.ndar
     if not np.allclose(a, a.T, rtol=1e-9, atol=1e-12 * scale):
         i, j = (int(v) for v in np.unravel_index(np.argmax(np.abs(a - a.T)), a.shape))
         raise ValueError(
-            f"{name}: not symmetric ([{i}, {j}] = {a[i, j]!r} but [{j}, {i}] = "
-            f"{a[j, i]!r}); a covariance must equal its transpose"
+            f"{name}: not symmetric ([{i}, {j}] = {float(a[i, j])!r} but [{j}, {i}] = "
+            f"{float(a[j, i])!r}); a covariance must equal its transpose"
         )
     w = np.linalg.eigvalsh(0.5 * (a + a.T))
     tol = 1e-12 * max(float(np.max(np.abs(w))), np.finfo(float).tiny)
@@ -128,3 +130,267 @@ def check_covariance(c, n: int, name: str, *, definite: bool = False) -> np.ndar
             f"{name}: not {kind} (smallest eigenvalue {w.min():.3g}); a covariance must be {kind}"
         )
     return a
+
+
+# --------------------------------------------------------------------------------------
+# Entry-point checks of the Python API (issue 6): one call at each public entry point.
+# --------------------------------------------------------------------------------------
+
+
+def check_gate(gate, name: str = "gate") -> float | None:
+    """``None`` or a finite number > 0 (a chi-square bound on the normalised innovation)."""
+    if gate is None:
+        return None
+    if isinstance(gate, bool) or not isinstance(gate, int | float | np.integer | np.floating):
+        raise ValueError(
+            f"{name}: expected None or a number > 0 (a chi-square bound on the normalised "
+            f"innovation squared, e.g. 100), got {type(gate).__name__} {gate!r}"
+        )
+    g = float(gate)
+    if not (np.isfinite(g) and g > 0):
+        raise ValueError(
+            f"{name}: expected a finite number > 0 (e.g. 100), got {g!r}; pass None for no gate"
+        )
+    return g
+
+
+def check_positive_int(value, name: str, minimum: int = 1) -> int:
+    """An integer ``>= minimum`` (booleans refused)."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise ValueError(
+            f"{name}: expected an integer >= {minimum}, got {type(value).__name__} {value!r}"
+        )
+    if int(value) < minimum:
+        raise ValueError(f"{name}: expected an integer >= {minimum}, got {int(value)}")
+    return int(value)
+
+
+def check_seed(seed, name: str = "seed") -> int | None:
+    """``None`` or an integer ``>= 0`` (as a scenario file's ``seed``)."""
+    return None if seed is None else check_positive_int(seed, name, 0)
+
+
+def check_scenario(scenario, name: str = "scenario") -> None:
+    """Require a :class:`~uimm_jax.scenarios.Scenario` (not a path or a dict)."""
+    from uimm_jax.scenarios import Scenario
+
+    if not isinstance(scenario, Scenario):
+        hint = (
+            "load a file with uimm_jax.load_scenario(path)"
+            if isinstance(scenario, str | bytes) or hasattr(scenario, "__fspath__")
+            else "validate a dict with uimm_jax.parse_scenario(d)"
+            if isinstance(scenario, dict)
+            else "build one with uimm_jax.load_scenario or uimm_jax.parse_scenario"
+        )
+        raise TypeError(f"{name}: expected a Scenario, got {type(scenario).__name__}; {hint}")
+
+
+def check_method(method, name: str = "method") -> None:
+    """``"uimm"`` or ``"imm"``."""
+    if method not in ("uimm", "imm"):
+        raise ValueError(f"{name}: expected 'uimm' or 'imm', got {method!r}")
+
+
+def check_float_dtype(dtype, name: str = "dtype"):
+    """A floating dtype (float32 or float64); returns it as a NumPy dtype."""
+    try:
+        d = np.dtype(dtype)
+    except TypeError:
+        raise ValueError(f"{name}: expected float32 or float64, got {dtype!r}") from None
+    if d not in (np.float32, np.float64):
+        raise ValueError(f"{name}: expected float32 or float64, got {d}")
+    return d
+
+
+def check_positive_finite(value, name: str) -> float:
+    """A finite number > 0."""
+    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+        raise ValueError(f"{name}: expected a number > 0, got {type(value).__name__} {value!r}")
+    v = float(value)
+    if not (np.isfinite(v) and v > 0):
+        raise ValueError(f"{name}: expected a finite number > 0, got {v!r}")
+    return v
+
+
+def check_measurements(y, m: int, name: str = "measurements") -> np.ndarray:
+    """``(N, m)`` numbers with ``N >= 1``; NaN = missing, infinite values refused."""
+    a = as_float_array(y, name)
+    if a.ndim == 1 and m == 1:
+        a = a[:, None]
+    check_shape(a, (None, m), name, f"one row of {m} measured channels per step")
+    if a.shape[0] == 0:
+        raise ValueError(f"{name}: no samples (shape {a.shape}); give at least one row")
+    check_no_inf(a, name)
+    return a
+
+
+def check_no_inf(y, name: str = "measurements") -> None:
+    """Refuse infinite measurements (NaN, not inf, marks a missing one)."""
+    a = np.asarray(y)
+    if np.any(np.isinf(a)):
+        idx = tuple(int(v) for v in np.argwhere(np.isinf(a))[0])
+        raise ValueError(
+            f"{name}: entry {idx} is {a[idx]}; a missing measurement is NaN -- "
+            "replace infinite values by NaN"
+        )
+
+
+def check_bank(bank, name: str = "bank") -> None:
+    """Require a ``LinearGaussianBank`` (or any object with ``A, B, C, Q, R``)."""
+    missing = [k for k in ("A", "B", "C", "Q", "R") if not hasattr(bank, k)]
+    if missing:
+        raise TypeError(
+            f"{name}: expected a LinearGaussianBank(A, B, C, Q, R) with a leading model axis, "
+            f"got {type(bank).__name__} (no {', '.join(missing)})"
+        )
+
+
+def check_inputs(u, N: int, p: int, name: str = "inputs") -> np.ndarray:
+    """``(N, p)`` finite numbers (``(N,)`` accepted when ``p = 1``)."""
+    a = as_float_array(u, name)
+    if a.ndim == 1 and p == 1:
+        a = a[:, None]
+    check_shape(a, (N, p), name, "one row per measurement, one column per input")
+    if not np.all(np.isfinite(a)):
+        k, c = (int(v) for v in np.argwhere(~np.isfinite(a))[0])
+        raise ValueError(
+            f"{name}: entry ({k}, {c}) is {a[k, c]}; inputs must be finite (they cannot be "
+            "missing: the filter needs them to predict)"
+        )
+    return a
+
+
+def _check_names(names, what: str, plant: str, *, allow_empty: bool) -> None:
+    if isinstance(names, str) or not isinstance(names, tuple | list):
+        raise ValueError(
+            f"plant {plant!r}: {what} must be a tuple of strings, got {type(names).__name__} "
+            f"{names!r}" + ("; write ('x',) for a single name" if isinstance(names, str) else "")
+        )
+    if not names and not allow_empty:
+        raise ValueError(f"plant {plant!r}: {what} is empty; give at least one name")
+    for s in names:
+        if not isinstance(s, str) or not s:
+            raise ValueError(f"plant {plant!r}: {what} must be non-empty strings, got {s!r}")
+    if len(set(names)) != len(names):
+        dup = sorted({s for s in names if list(names).count(s) > 1})
+        raise ValueError(f"plant {plant!r}: {what} must be unique; repeated: {', '.join(dup)}")
+
+
+def check_plant_structure(plant) -> None:
+    """Cheap structural checks of a plant definition (no JAX): names, values, faults."""
+    if not isinstance(plant.name, str) or not plant.name:
+        raise ValueError(f"plant name: expected a non-empty string, got {plant.name!r}")
+    _check_names(plant.state_names, "state_names", plant.name, allow_empty=False)
+    _check_names(plant.input_names, "input_names", plant.name, allow_empty=True)
+    _check_names(plant.output_names, "output_names", plant.name, allow_empty=False)
+    _check_names(plant.param_names, "param_names", plant.name, allow_empty=True)
+    for pname, v in zip(plant.param_names, plant.nominal_values, strict=False):
+        if isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating):
+            raise ValueError(
+                f"plant {plant.name!r}: nominal value of {pname!r} must be a number, got {v!r}"
+            )
+        if not np.isfinite(float(v)):
+            raise ValueError(
+                f"plant {plant.name!r}: nominal value of {pname!r} is {v}; it must be finite"
+            )
+    for fault in tuple(plant.faults) + tuple(plant.extra_faults):
+        for pname, v in dict(fault.values).items():
+            if isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating):
+                raise ValueError(
+                    f"plant {plant.name!r}: fault {fault.name!r}: value of {pname!r} must be "
+                    f"a number, got {v!r}"
+                )
+            if not np.isfinite(float(v)):
+                raise ValueError(
+                    f"plant {plant.name!r}: fault {fault.name!r}: value of {pname!r} is {v}; "
+                    "it must be finite"
+                )
+
+
+def check_plant_functions(plant) -> None:
+    """Evaluate a plant's functions once at the nominal parameters; check shapes and values.
+
+    A ``LinearPlant``'s ``matrices(p)`` must return ``(A, B, C, d)`` of shapes ``(n, n)``,
+    ``(n, p)``, ``(m, n)``, ``(m,)``, finite; a ``NonlinearPlant``'s ``f(x, u, p)`` must
+    return ``(n,)`` and ``h(x, p)`` ``(m,)`` at ``x = 0``, ``u = 0``.  Uses JAX: called at
+    first use (:func:`uimm_jax.runner.setup_scenario`), not at registration.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    n, p, m = len(plant.state_names), len(plant.input_names), len(plant.output_names)
+    with jax.ensure_compile_time_eval():
+        pr = plant.params(jnp.asarray(np.asarray(plant.nominal_values, np.float64)))
+        if hasattr(plant, "matrices"):
+            try:
+                out = plant.matrices(pr)
+            except Exception as err:  # noqa: BLE001 - report the user's error with context
+                raise ValueError(
+                    f"plant {plant.name!r}: matrices(p) failed at the nominal parameters: "
+                    f"{type(err).__name__}: {err}"
+                ) from err
+            if not isinstance(out, tuple | list) or len(out) != 4:
+                raise ValueError(
+                    f"plant {plant.name!r}: matrices(p) must return a tuple (A, B, C, d), got "
+                    f"{type(out).__name__}"
+                )
+            wants = {"A": (n, n), "B": (n, p), "C": (m, n), "d": (m,)}
+            for (label, want), val in zip(wants.items(), out, strict=True):
+                a = np.asarray(val, np.float64)
+                if a.shape != want and not (label == "B" and p == 0 and a.size == 0):
+                    raise ValueError(
+                        f"plant {plant.name!r}: matrices(p) returned {label} of shape "
+                        f"{a.shape}; expected {want} (n = {n} states, p = {p} inputs, "
+                        f"m = {m} outputs)"
+                    )
+                if not np.all(np.isfinite(a)):
+                    raise ValueError(
+                        f"plant {plant.name!r}: matrices(p) returned a non-finite {label} at "
+                        "the nominal parameters"
+                    )
+        else:
+            x0 = jnp.zeros((n,))
+            u0 = jnp.zeros((p,))
+            for label, fn, args, want in (
+                ("f(x, u, p)", plant.f, (x0, u0, pr), (n,)),
+                ("h(x, p)", plant.h, (x0, pr), (m,)),
+            ):
+                try:
+                    a = np.asarray(fn(*args), np.float64)
+                except Exception as err:  # noqa: BLE001
+                    raise ValueError(
+                        f"plant {plant.name!r}: {label} failed at x = 0, u = 0 and the nominal "
+                        f"parameters: {type(err).__name__}: {err}"
+                    ) from err
+                if a.shape != want:
+                    raise ValueError(
+                        f"plant {plant.name!r}: {label} returned shape {a.shape}; expected {want}"
+                    )
+
+
+_CHECKED_PLANTS: weakref.WeakSet = weakref.WeakSet()
+
+
+def check_setup_args(scenario, method, dtype, magnitude_scale) -> None:
+    """Arguments of :func:`uimm_jax.runner.setup_scenario` (and its plant, once per plant)."""
+    check_scenario(scenario)
+    if method is not None:
+        check_method(method)
+    if dtype is not None:
+        check_float_dtype(dtype)
+    check_positive_finite(magnitude_scale, "magnitude_scale")
+    plant = scenario.plant
+    if plant not in _CHECKED_PLANTS:
+        check_plant_structure(plant)
+        check_plant_functions(plant)
+        _CHECKED_PLANTS.add(plant)
+
+
+def check_run_data(setup, y, u, chunk) -> tuple[np.ndarray, np.ndarray | None]:
+    """Arguments of :func:`uimm_jax.runner.filter_measurements`: ``(N, m)`` / ``(N, p)``."""
+    plant = setup.scenario.plant
+    check_positive_int(chunk, "chunk")
+    y = check_measurements(y, plant.output_dim)
+    if u is not None:
+        u = check_inputs(u, y.shape[0], plant.input_dim)
+    return y, u
