@@ -267,6 +267,7 @@ def scan_chunked(
     xs: Any = None,
     progress: Callable[[int, int, float], None] | None = None,
     keep_outputs: bool = True,
+    timings: list | None = None,
 ):
     """Drive a jitted chunk function over ``num_steps`` steps.
 
@@ -286,6 +287,8 @@ def scan_chunked(
         xs: optional pytree of per-step inputs (leading axis ``num_steps``).
         progress: optional callback ``(done, total, elapsed_s)`` called after each chunk.
         keep_outputs: concatenate and return the outputs (else ``None``).
+        timings: optional list; ``(steps, seconds)`` of every chunk is appended (the first
+            chunk's time includes compilation).
 
     Returns:
         ``(final_carry, outputs)`` with outputs concatenated along the time axis as NumPy.
@@ -299,7 +302,11 @@ def scan_chunked(
             piece = jnp.arange(done, done + length, dtype=jnp.int32)
         else:
             piece = jax.tree.map(lambda a, d=done, n=length: a[d : d + n], xs)
+        tc = time.perf_counter()
         carry, out = run_chunk(carry, jnp.asarray(done, jnp.int32), piece)
+        if timings is not None:
+            jax.block_until_ready(carry)
+            timings.append((length, time.perf_counter() - tc))
         if keep_outputs:
             outs.append(jax.tree.map(np.asarray, out))
         done += length

@@ -285,6 +285,7 @@ def filter_measurements(
     chunk: int = DEFAULT_CHUNK,
     with_cov: bool = False,
     progress: Callable | None = None,
+    timings: list | None = None,
 ):
     """Run the scenario's diagnoser over measurements ``y`` (N, m) and inputs ``u`` (N, p).
 
@@ -293,7 +294,8 @@ def filter_measurements(
     Returns:
         ``(final_state, outputs)`` with outputs a dict of per-step NumPy arrays:
         ``mode_probs`` (N, M), ``mean`` (N, n), ``recognised`` (N,), ``declared`` (N,),
-        ``health`` (N,) and, with ``with_cov``, ``cov`` (N, n, n).
+        ``health`` (N,) and, with ``with_cov``, ``cov`` (N, n, n).  ``timings``, if given,
+        receives ``(steps, seconds)`` per chunk (the first includes compilation).
     """
     sc = setup.scenario
     y, u = check_run_data(setup, y, u, chunk)
@@ -302,7 +304,9 @@ def filter_measurements(
     N = ys.shape[0]
     us = jnp.asarray(scenario_inputs(sc, N) if u is None else u, dtype)
     run = lambda c, k0, uy: _filter_chunk(setup.diagnoser, setup.params, c, k0, uy, with_cov)
-    final, out = scan_chunked(run, setup.init_state, N, chunk=chunk, xs=(us, ys), progress=progress)
+    final, out = scan_chunked(
+        run, setup.init_state, N, chunk=chunk, xs=(us, ys), progress=progress, timings=timings
+    )
     keys = ["mode_probs", "mean", "recognised", "declared", "health"] + (
         ["cov"] if with_cov else []
     )
@@ -369,7 +373,10 @@ def run_scenario(
     t_sim = time.perf_counter() - t0
     y = truth["y"]
     t1 = time.perf_counter()
-    _, outputs = filter_measurements(setup, y, truth["u"], chunk=chunk, progress=cb("filter"))
+    timings: list = []
+    _, outputs = filter_measurements(
+        setup, y, truth["u"], chunk=chunk, progress=cb("filter"), timings=timings
+    )
     t_filter = time.perf_counter() - t1
     summary = summarize(
         setup,
@@ -378,6 +385,7 @@ def run_scenario(
         runtime_s=t_filter,
         sim_runtime_s=t_sim,
         seed=scenario.seed if seed is None else int(seed),
+        chunk_timings=timings,
     )
     return RunResult(setup, truth, outputs, summary)
 
@@ -393,6 +401,18 @@ def _declaration_list(declared: np.ndarray, names, dt) -> list[dict]:
     return out
 
 
+def _rates(N: int, runtime_s: float, chunk_timings: list | None) -> dict[str, Any]:
+    """``steps_per_s`` (steady state when chunk timings allow) and ``compile_s``."""
+    if chunk_timings and len(chunk_timings) > 1:
+        steps = sum(n for n, _ in chunk_timings[1:])
+        secs = sum(t for _, t in chunk_timings[1:])
+        rate = steps / secs if secs > 0 else None
+        first_n, first_t = chunk_timings[0]
+        compile_s = max(first_t - first_n / rate, 0.0) if rate else None
+        return {"steps_per_s": rate, "compile_s": compile_s}
+    return {"steps_per_s": float(N / runtime_s) if runtime_s > 0 else None, "compile_s": None}
+
+
 def summarize(
     setup: RunSetup,
     truth_codes: np.ndarray,
@@ -401,6 +421,7 @@ def summarize(
     runtime_s: float,
     sim_runtime_s: float | None = None,
     seed: int | None = None,
+    chunk_timings: list | None = None,
 ) -> dict[str, Any]:
     """The machine-readable summary of one run (written as ``summary.json`` by the CLI).
 
@@ -408,7 +429,9 @@ def summarize(
     step k, otherwise it is a *false declaration*.  ``detection_delay_s[f]`` is the time
     from the event of f to its first correct declaration (``None`` if never declared).
     ``mode_accuracy`` is the fraction of samples whose recognised fault set equals the true
-    one.
+    one.  With ``chunk_timings`` (``(steps, seconds)`` per chunk), ``steps_per_s`` is the
+    steady-state rate of the chunks after the first and ``compile_s`` estimates the
+    compilation time (first chunk minus its steady-state share).
     """
     sc = setup.scenario
     names = list(setup.table.names)
@@ -462,6 +485,6 @@ def summarize(
         },
         "runtime_s": float(runtime_s),
         "simulation_runtime_s": None if sim_runtime_s is None else float(sim_runtime_s),
-        "steps_per_s": float(N / runtime_s) if runtime_s > 0 else None,
+        **_rates(N, runtime_s, chunk_timings),
         "dtype": str(setup.params.imm.Q.dtype),
     }
