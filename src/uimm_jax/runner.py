@@ -87,6 +87,11 @@ def _cached_diagnoser(plant, dt, method, gate, faults_key, nominal_key):
     return build_diagnoser(method, dyn, table, gate=gate), table
 
 
+@functools.partial(jax.jit, static_argnums=0)
+def _jit_dyn_prepare(dyn, theta):
+    return dyn.prepare(theta)
+
+
 def resolve_filter_settings(scenario, method: str) -> tuple[np.ndarray, np.ndarray]:
     """Transition matrix and initial mode probabilities for ``method``.
 
@@ -178,7 +183,7 @@ def setup_scenario(
         steps.append(int(round(ev.time / scenario.dt)))
     th = jnp.asarray(np.array(thetas).T, dtype)  # (P, K)
     plan = TruthPlan(
-        cache=diag.dyn.prepare(th),
+        cache=_jit_dyn_prepare(diag.dyn, th),
         event_steps=jnp.asarray(np.array(steps, np.int32).reshape(-1)),
         true_codes=jnp.asarray(np.array(codes, np.int32)),
         Gq=jnp.asarray(noise_factor(scenario.process_noise), dtype),

@@ -33,6 +33,7 @@ The recognised system mode at each step is the fault set of the most probable mo
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any, Literal, NamedTuple
 
 import jax
@@ -144,6 +145,9 @@ class Diagnoser:
 
     def prepare(self, declared: jax.Array, dtype) -> Any:
         """Dynamics cache of the bank for the declared set ``(*runs, F)``."""
+        return _jit_prepare(self, declared, jnp.dtype(dtype))
+
+    def _prepare(self, declared: jax.Array, dtype) -> Any:
         return self.dyn.prepare(thetas_for_sets(self.table, self.model_sets(declared), dtype))
 
     def init(self, mean0, cov0, mode_probs0, runs: tuple[int, ...] = (), dtype=None) -> DiagState:
@@ -266,6 +270,15 @@ class Diagnoser:
 
         cache = jax.lax.cond(jnp.any(declare_now), rebuild, lambda c: c, cache)
         return IMMState(mean, cov, lm), cache
+
+
+@functools.partial(jax.jit, static_argnums=(0, 2))
+def _jit_prepare(diag: Diagnoser, declared: jax.Array, dtype) -> Any:
+    """The bank's discretisation, compiled once (eagerly it dispatches hundreds of tiny ops).
+
+    Inside another trace (the filter's ``lax.cond`` rebuild) the call is inlined.
+    """
+    return diag._prepare(declared, dtype)
 
 
 def build_diagnoser(

@@ -5,8 +5,9 @@ Two flags matter on the CPU (measured in benchmarks/README.md):
 * ``--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=<large>`` lets
   XLA CPU hoist a whole ``lax.scan`` into one compiled kernel when its body has no dots
   or custom calls -- the engine's bank algebra is written that way
-  (:mod:`uimm_jax._smallmat`).  Without it each step pays per-kernel dispatch (about
-  100 times slower for the actuator bank).
+  (:mod:`uimm_jax._wide`, :mod:`uimm_jax._smallmat`).  Without it each step pays
+  per-kernel dispatch (measured 4x slower for the actuator bank; 30x before the kernel
+  was restructured into fewer, wider operations).
 * ``--xla_cpu_experimental_ynn_fusion_type=`` (empty) turns off the YNNPACK fusions that
   XLA CPU otherwise picks for batched multiply-reduce patterns from a batch of about 64
   runs, where throughput collapses.
