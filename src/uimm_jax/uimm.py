@@ -250,26 +250,31 @@ class Diagnoser:
         return new_state, out
 
     def _declare(self, imm_state: IMMState, cache, onehot, declare_now, new_declared, dtype):
-        """UIMM hand-over and masked re-parameterisation on declaration (see module doc)."""
+        """UIMM hand-over and masked re-parameterisation on declaration (see module doc).
+
+        Everything happens inside one ``lax.cond`` taken only on steps where some run
+        declares, so the other steps pay nothing for it.
+        """
         dn = declare_now[..., None]  # (*runs, 1)
-        oh = onehot.astype(dtype)
-        win_mean = jnp.sum(imm_state.mean * oh, axis=-1, keepdims=True)
-        win_cov = jnp.sum(imm_state.cov * oh, axis=-1, keepdims=True)
-        mean = jnp.where(dn, win_mean, imm_state.mean)
-        cov = jnp.where(dn, win_cov, imm_state.cov)
-        lm = imm_state.log_mode_probs
-        top = jnp.max(lm, axis=-1, keepdims=True)
-        slot0 = jnp.arange(lm.shape[-1]) == 0
-        moved = jnp.where(slot0, top, jnp.where(onehot, -jnp.inf, lm))
-        moved, _ = log_normalize(moved)
-        lm = jnp.where(dn, moved, lm)
 
-        def rebuild(c):
-            fresh = self.prepare(new_declared, dtype)
-            return jax.tree.map(lambda new, old: jnp.where(dn, new, old), fresh, c)
+        def handover(operand):
+            st, c = operand
+            oh = onehot.astype(dtype)
+            win_mean = jnp.sum(st.mean * oh, axis=-1, keepdims=True)
+            win_cov = jnp.sum(st.cov * oh, axis=-1, keepdims=True)
+            mean = jnp.where(dn, win_mean, st.mean)
+            cov = jnp.where(dn, win_cov, st.cov)
+            lm = st.log_mode_probs
+            top = jnp.max(lm, axis=-1, keepdims=True)
+            slot0 = jnp.arange(lm.shape[-1]) == 0
+            moved = jnp.where(slot0, top, jnp.where(onehot, -jnp.inf, lm))
+            moved, _ = log_normalize(moved)
+            lm = jnp.where(dn, moved, lm)
+            fresh = self._prepare(new_declared, dtype)
+            c = jax.tree.map(lambda new, old: jnp.where(dn, new, old), fresh, c)
+            return IMMState(mean, cov, lm), c
 
-        cache = jax.lax.cond(jnp.any(declare_now), rebuild, lambda c: c, cache)
-        return IMMState(mean, cov, lm), cache
+        return jax.lax.cond(jnp.any(declare_now), handover, lambda o: o, (imm_state, cache))
 
 
 @functools.partial(jax.jit, static_argnums=(0, 2))
