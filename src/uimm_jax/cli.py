@@ -1,4 +1,4 @@
-"""Command line: ``uimm-jax run SCENARIO [--out DIR] [--method uimm|imm] [--seed N]``.
+"""Command line: ``uimm-jax run SCENARIO [--out DIR] [--method uimm|imm] [--seed N] [--float32]``.
 
 The CLI (not the library) enables float64 and the recommended XLA CPU flags before JAX
 starts (opt out of the flags with ``UIMM_JAX_NO_XLA_FLAGS=1``).  Invalid input is reported
@@ -106,9 +106,11 @@ def _print_summary(s: dict) -> None:
         print(f"  declared {d['fault']:<20s} at {d['time']:8.4f} s  [{tag}]")
     print(f"false declarations  {s['false_declarations']}")
     print(f"mode accuracy       {s['mode_accuracy']:.4f}")
+    comp = s.get("compile_s")
+    comp_txt = f", compile {comp:.1f} s" if comp is not None else ""
     print(
-        f"filter runtime      {s['runtime_s']:.2f} s  ({s['steps_per_s'] / 1e6:.3f} M steps/s, "
-        f"{1e6 / s['steps_per_s']:.2f} us/step, first call includes compilation)"
+        f"filter runtime      {s['runtime_s']:.2f} s  ({s['steps_per_s'] / 1e6:.3f} M steps/s = "
+        f"{1e6 / s['steps_per_s']:.2f} us/step steady state{comp_txt})"
     )
 
 
@@ -116,8 +118,14 @@ def _cmd_run(args) -> int:
     from uimm_jax.runner import run_scenario
     from uimm_jax.scenarios import load_scenario
 
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        raise ValueError(f"--out: {args.out!r} is a file; give a directory (created if missing)")
+    if args.seed is not None and args.seed < 0:
+        raise ValueError(f"--seed: expected an integer >= 0, got {args.seed}")
     sc = load_scenario(args.scenario)
     method = args.method or sc.filter.method
+    if args.float32:  # scaled float32 diagnoser (uimm_jax.scaling, docs/robustness.md)
+        from uimm_jax.scaling import run_scenario_float32 as run_scenario
     measurements = None
     if args.measurements:
         from uimm_jax.measured import load_measurements
@@ -153,7 +161,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--seed", type=int, help="override the scenario's seed")
     r.add_argument(
         "--measurements",
-        help="diagnose measured data (CSV or .npy) instead of simulating; see docs/measurements.md",
+        help="diagnose measured data (.csv, .npy or .npz) instead of simulating; "
+        "see docs/measurements.md",
+    )
+    r.add_argument(
+        "--float32",
+        action="store_true",
+        help="run the diagnoser in float32 on a scaled model (docs/robustness.md)",
     )
     r.add_argument("--no-plots", action="store_true", help="write summary.json only")
     r.add_argument("--quiet", action="store_true", help="no progress output")
@@ -186,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     warnings.showwarning = _show
     try:
         return int(args.func(args) or 0)
-    except (ScenarioError, ValueError, FileNotFoundError) as err:
+    except (ScenarioError, ValueError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

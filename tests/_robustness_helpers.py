@@ -1,0 +1,71 @@
+"""Short variants of the shipped tuned scenarios, shared by the robustness test files.
+
+Every engine run in these tests uses the tuned scenarios' diagnoser (same plant, faults,
+dt and gate, so ``runner.setup_scenario`` returns the same cached diagnoser) and time
+chunks of ``CHUNK`` steps, so the filter and the truth simulation compile once per
+session whatever the scenario variant (transition, threshold, noise, events).
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from uimm_jax.errors import UIMMWarning
+from uimm_jax.scenarios import dump_scenario, load_scenario, parse_scenario, scenario_to_dict
+
+REPO = Path(__file__).resolve().parents[1]
+SCENARIOS = REPO / "scenarios"
+TUNED = {1: SCENARIOS / "paper_sim1_tuned.toml", 2: SCENARIOS / "paper_sim2_tuned.toml"}
+CHUNK = 10_000  # steps per compiled chunk: every run below is a multiple of it
+
+
+def tuned_dict(sim: int) -> dict:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UIMMWarning)
+        return scenario_to_dict(load_scenario(TUNED[sim]))
+
+
+def short_dict(sim: int = 1, duration: float = 1.0, events=(0.3, 0.6), **changes) -> dict:
+    """The tuned scenario shortened to ``duration`` s with its events moved to ``events``."""
+    d = tuned_dict(sim)
+    d["duration"] = duration
+    for ev, t in zip(d["events"], events, strict=True):
+        ev["time"] = t
+    for key, value in changes.items():
+        table, _, field = key.rpartition("__")
+        target = d
+        for part in table.split("__") if table else ():
+            target = target[part]
+        target[field] = value
+    return d
+
+
+def short_scenario(sim: int = 1, duration: float = 1.0, events=(0.3, 0.6), **changes):
+    """:func:`short_dict` validated (``filter__stay=0.999`` changes ``[filter].stay``)."""
+    return parse_scenario(short_dict(sim, duration, events, **changes), source=f"short-sim{sim}")
+
+
+def write_short(path: Path, sim: int = 1, **kw) -> Path:
+    """Write a short scenario file (for the CLI)."""
+    return dump_scenario(short_dict(sim, **kw), path)
+
+
+def true_fault_names(scenario) -> list[str]:
+    return sorted(e.fault for e in scenario.events)
+
+
+def assert_declared_right(summary: dict, scenario) -> None:
+    """The declared faults are exactly the true ones, each declared after its onset."""
+    declared = sorted(d["fault"] for d in summary["declarations"])
+    assert declared == true_fault_names(scenario), summary["declarations"]
+    assert summary["false_declarations"] == 0, summary["false_declaration_list"]
+    assert all(v is not None and v >= 0 for v in summary["detection_delay_s"].values())
+
+
+def all_finite(outputs: dict) -> bool:
+    return all(
+        np.all(np.isfinite(np.asarray(outputs[k]))) for k in ("mode_probs", "mean") if k in outputs
+    )
