@@ -1,0 +1,284 @@
+"""Monte Carlo throughput and memory: run-steps/s against batch size, UIMM (M = 4), float64.
+
+Every configuration runs in its own subprocess (fresh XLA, its own peak memory VmHWM from
+/proc/self/status; XLA's buffers are not seen by tracemalloc):
+
+* ``single``: the engine's single-run path (``runner.simulate_scenario`` then
+  ``runner.filter_measurements``, two scans, per-step outputs kept) -- the baseline;
+* ``fused B``: the Monte Carlo kernel of :mod:`uimm_jax.montecarlo` (truth + UIMM + metrics
+  in one scan, nothing per step stored) on a batch of B runs of the paper's simulation 1
+  (valve wear at 30 % of the run, leakage at 60 %), on 1 device, and on 2 forced host
+  devices (``--xla_force_host_platform_device_count=2``, the run axis sharded);
+* ``memory``: a fixed batch over 1e4 and 1e6 samples (same compiled chunk of 1e4 steps):
+  the peak must not grow with the number of samples.
+
+Compilation is timed apart (first chunk minus a steady chunk).  Ratios are against the
+single-run baseline measured in the same invocation.  Defaults finish in < 10 minutes on a
+quiet 2-core machine::
+
+    python benchmarks/bench_montecarlo.py               # full table
+    python benchmarks/bench_montecarlo.py --quick       # a smoke run (~2 min)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _vm(field: str) -> float:
+    """A /proc/self/status size in MiB (Linux)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(field + ":"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return float("nan")
+
+
+def _scenario(num_steps: int):
+    from uimm_jax.scenarios import load_scenario, parse_scenario, scenario_to_dict
+
+    d = scenario_to_dict(load_scenario(ROOT / "scenarios" / "paper_sim1_tuned.toml"))
+    dt = d["dt"]
+    d["duration"] = num_steps * dt
+    d["events"] = [
+        {"fault": "valve_wear", "time": round(0.3 * num_steps) * dt},
+        {"fault": "leakage", "time": round(0.6 * num_steps) * dt},
+    ]
+    d.pop("sweep", None)
+    return parse_scenario(d, source="bench")
+
+
+def worker(args) -> dict:
+    """Run one configuration in this (fresh) process and return its measurements."""
+    from uimm_jax.xla_flags import apply_recommended_xla_flags
+
+    apply_recommended_xla_flags()
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import numpy as np
+
+    from uimm_jax import montecarlo as mc
+    from uimm_jax import runner
+
+    sc = _scenario(args.steps)
+    N, L = args.steps, args.chunk
+    rss0 = _vm("VmRSS")
+    if args.worker == "single":
+        setup = runner.setup_scenario(sc, "uimm")
+
+        def once(n):
+            sub = _scenario(n) if n != N else sc
+            s = runner.setup_scenario(sub, "uimm")
+            t0 = time.perf_counter()
+            tr = runner.simulate_scenario(s, chunk=L)
+            _, out = runner.filter_measurements(s, tr["y"], tr["u"], chunk=L)
+            np.asarray(out["declared"])
+            return time.perf_counter() - t0
+
+        del setup
+        t_first = once(L)  # compile + one chunk
+        hwm_compile = _vm("VmHWM")
+        t_run = once(N)
+        B = 1
+    else:
+        setup = runner.setup_scenario(sc, "uimm")
+        spec = mc.sweep_spec(sc, runs=args.batch, fault_free=False, batch=args.batch)
+        dt = float(sc.dt)
+        onset = np.array([round(0.3 * N), round(0.6 * N), -1], np.int32)
+        jobs = [mc._Job(0, r, onset, np.ones(3), 1.0) for r in range(args.batch)]
+        noise_keys, _ = mc.run_keys(spec.seed, args.batch)
+        devs = jax.devices()
+        mesh = None
+        if len(devs) > 1:
+            from jax.sharding import Mesh
+
+            mesh = Mesh(np.array(devs), ("runs",))
+        B = args.batch
+
+        def once(n):
+            plan, keys, carry = mc._make_batch(setup, sc, jobs, noise_keys, 3, jnp_float64())
+            jax.block_until_ready((plan, keys, carry))
+            t0 = time.perf_counter()
+            m = mc._run_batch(
+                setup.diagnoser,
+                dt,
+                1,
+                setup.params,
+                setup.signal,
+                plan,
+                keys,
+                carry,
+                mesh,
+                n,
+                L,
+                None,
+            )
+            elapsed = time.perf_counter() - t0
+            return elapsed, m
+
+        t_first, _ = once(L)
+        hwm_compile = _vm("VmHWM")
+        t_run, m = once(N)
+        if args.check:
+            assert np.all(m.decl_step[:, 0] >= round(0.3 * N)), m.decl_step
+    per_chunk = t_run * L / N
+    return {
+        "worker": args.worker,
+        "batch": B,
+        "devices": len(jax.devices()),
+        "steps": N,
+        "chunk": L,
+        "run_steps_per_s": B * N / t_run,
+        "run_s": t_run,
+        "compile_s": max(t_first - per_chunk, 0.0),
+        "rss_start_mib": rss0,
+        "hwm_after_compile_mib": hwm_compile,
+        "hwm_end_mib": _vm("VmHWM"),
+    }
+
+
+def jnp_float64():
+    import jax.numpy as jnp
+
+    return jnp.float64
+
+
+def _spawn(mode: str, batch: int, steps: int, chunk: int, devices: int, timeout: float) -> dict:
+    env = dict(os.environ)
+    flags = env.get("XLA_FLAGS", "")
+    if devices > 1:
+        flags += f" --xla_force_host_platform_device_count={devices}"
+    env["XLA_FLAGS"] = flags.strip()
+    env["JAX_PLATFORMS"] = "cpu"
+    cmd = [
+        sys.executable,
+        __file__,
+        "--worker",
+        mode,
+        "--batch",
+        str(batch),
+        "--steps",
+        str(steps),
+        "--chunk",
+        str(chunk),
+    ]
+    out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
+    if out.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{out.stderr[-3000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _steps_for(batch: int, target: float, chunk: int) -> tuple[int, int]:
+    n = max(int(target / batch), chunk)
+    L = min(chunk, n)
+    return max(L, round(n / L) * L), L
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--worker", choices=("single", "fused"), help=argparse.SUPPRESS)
+    p.add_argument("--batch", type=int, default=1, help=argparse.SUPPRESS)
+    p.add_argument("--steps", type=int, default=10_000, help=argparse.SUPPRESS)
+    p.add_argument("--check", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument(
+        "--batches",
+        default="1,2,4,8,16,32,64,128,256,512",
+        help="comma-separated batch sizes (default 1..512)",
+    )
+    p.add_argument(
+        "--two-device-batches",
+        default="64,256,512",
+        help="batch sizes also run sharded over 2 forced host devices ('' to skip)",
+    )
+    p.add_argument("--run-steps", type=float, default=2e6, help="run-steps timed per configuration")
+    p.add_argument("--chunk", type=int, default=5000, help="steps per compiled chunk")
+    p.add_argument("--mem-batch", type=int, default=32, help="batch of the memory test")
+    p.add_argument("--mem-steps", default="10000,1000000", help="sample counts of the memory test")
+    p.add_argument("--quick", action="store_true", help="a short smoke run")
+    p.add_argument("--json", help="also write the rows to this JSON file")
+    args = p.parse_args(argv)
+    if args.worker:
+        print(json.dumps(worker(args)))
+        return 0
+    if args.quick:
+        args.batches, args.two_device_batches = "1,16,128", "128"
+        args.run_steps, args.mem_steps = 5e5, "10000,100000"
+    batches = [int(b) for b in args.batches.split(",") if b]
+    two = [int(b) for b in args.two_device_batches.split(",") if b]
+    t_all = time.perf_counter()
+    import platform
+
+    print(
+        f"# bench_montecarlo: UIMM M=4 float64, paper sim 1; {os.cpu_count()} CPUs, "
+        f"python {platform.python_version()}",
+        flush=True,
+    )
+    rows = []
+    n, L = _steps_for(1, args.run_steps / 4, args.chunk)
+    base = _spawn("single", 1, n, L, 1, 1800)
+    base["label"] = "single run (runner: simulate + filter)"
+    rows.append(base)
+    print(
+        f"baseline single run: {base['run_steps_per_s'] / 1e6:.3f} M steps/s "
+        f"(compile {base['compile_s']:.1f} s)",
+        flush=True,
+    )
+    for devices, bs in ((1, batches), (2, two)):
+        for b in bs:
+            n, L = _steps_for(b, args.run_steps, args.chunk)
+            r = _spawn("fused", b, n, L, devices, 1800)
+            r["label"] = f"fused B={b}, {devices} device(s)"
+            rows.append(r)
+            print(
+                f"{r['label']:32s} {r['run_steps_per_s'] / 1e6:7.3f} M run-steps/s "
+                f"x{r['run_steps_per_s'] / base['run_steps_per_s']:6.2f}  compile "
+                f"{r['compile_s']:5.1f} s  peak {r['hwm_end_mib']:7.1f} MiB",
+                flush=True,
+            )
+    mem = []
+    for steps in [int(float(s)) for s in args.mem_steps.split(",") if s]:
+        r = _spawn("fused", args.mem_batch, steps, min(10_000, steps), 1, 3600)
+        r["label"] = f"memory B={args.mem_batch}, {steps:.0e} samples"
+        mem.append(r)
+        print(
+            f"{r['label']:32s} peak {r['hwm_end_mib']:7.1f} MiB (after compile "
+            f"{r['hwm_after_compile_mib']:7.1f} MiB), {r['run_steps_per_s'] / 1e6:.3f} M "
+            "run-steps/s",
+            flush=True,
+        )
+    print()
+    print("| configuration | run-steps/s | vs single run | compile (s) | peak RSS (MiB) |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        print(
+            f"| {r['label']} | {r['run_steps_per_s'] / 1e6:.3f} M | "
+            f"{r['run_steps_per_s'] / base['run_steps_per_s']:.2f}x | {r['compile_s']:.1f} | "
+            f"{r['hwm_end_mib']:.0f} |"
+        )
+    print()
+    print("| memory test | samples | peak after compile (MiB) | peak at end (MiB) |")
+    print("|---|---|---|---|")
+    for r in mem:
+        print(
+            f"| fused B={r['batch']} | {r['steps']:.0e} | {r['hwm_after_compile_mib']:.0f} | "
+            f"{r['hwm_end_mib']:.0f} |"
+        )
+    print(f"\ntotal wall time {time.perf_counter() - t_all:.0f} s")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"rows": rows, "memory": mem}, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

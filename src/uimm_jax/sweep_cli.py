@@ -1,0 +1,165 @@
+"""Command line: ``uimm-jax sweep SCENARIO [--runs N] [--out DIR] ...`` (Monte Carlo study).
+
+Registered by :mod:`uimm_jax.cli`.  Runs :func:`uimm_jax.montecarlo.run_sweep` with the
+scenario's ``[sweep]`` table, overridden by the options, and writes ``results.json``,
+``results.csv`` and the figures (see ``docs/montecarlo.md``).  The CLI has already enabled
+float64 and the recommended XLA CPU flags when the command runs.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+__all__ = ["register"]
+
+
+def _floats(text: str) -> list[float]:
+    try:
+        return [float(v) for v in text.split(",") if v.strip()]
+    except ValueError as err:
+        raise ValueError(f"expected comma-separated numbers, got {text!r}") from err
+
+
+def _methods(text: str) -> list[str]:
+    return [v.strip() for v in text.split(",") if v.strip()]
+
+
+def register(subparsers) -> None:
+    """Add the ``sweep`` sub-command to the ``uimm-jax`` parser."""
+    s = subparsers.add_parser(
+        "sweep",
+        help="Monte Carlo study: detection/isolation metrics over seeds, magnitudes, methods",
+        description="Monte Carlo study of a scenario: writes results.json, results.csv and "
+        "figures (docs/montecarlo.md).",
+    )
+    s.add_argument("scenario", help="scenario TOML file, optionally with a [sweep] table")
+    s.add_argument("--runs", type=int, help="runs per cell (overrides [sweep].runs)")
+    s.add_argument("--out", default="out/sweep", help="output directory (default: out/sweep)")
+    s.add_argument(
+        "--methods", type=_methods, help="comma-separated methods, e.g. uimm,imm (overrides)"
+    )
+    s.add_argument(
+        "--magnitudes", type=_floats, help="comma-separated magnitude scales, e.g. 0.25,0.5,1"
+    )
+    s.add_argument("--noise-scales", type=_floats, help="comma-separated truth-noise scales")
+    s.add_argument("--seed", type=int, help="root seed (default: [sweep].seed or the scenario's)")
+    s.add_argument("--batch", type=int, help="runs per compiled batch (default 128)")
+    s.add_argument(
+        "--chunk", type=int, help="time steps per compiled chunk (default: about 2e6 / batch)"
+    )
+    s.add_argument(
+        "--devices", type=int, help="shard the runs over this many devices (default: all)"
+    )
+    s.add_argument(
+        "--host-devices",
+        type=int,
+        help="split the CPU into this many XLA devices (sets "
+        "--xla_force_host_platform_device_count before JAX starts; e.g. the core count)",
+    )
+    ff = s.add_mutually_exclusive_group()
+    ff.add_argument(
+        "--no-fault-free", dest="fault_free", action="store_false", default=None,
+        help="leave out the fault-free cells",
+    )  # fmt: skip
+    ff.add_argument(
+        "--fault-free", dest="fault_free", action="store_true", default=None,
+        help="include the fault-free cells (the default)",
+    )  # fmt: skip
+    s.add_argument("--no-plots", action="store_true", help="write results.json/csv only")
+    s.add_argument("--quiet", action="store_true", help="no progress output")
+    s.set_defaults(func=_cmd_sweep)
+
+
+def _fmt(v, spec: str = ".3f") -> str:
+    return "-" if v is None else format(v, spec)
+
+
+def _print_table(result) -> None:
+    faults = result.faults
+    print(
+        f"{'method':6s} {'case':24s} {'mag':>5s} {'noise':>5s} {'runs':>5s}  "
+        + "  ".join(f"{f[:12]:>12s} Pd / med ms" for f in faults)
+        + f"  {'false':>5s} {'FA/h':>8s} {'isol':>6s} {'mode acc':>8s}"
+    )
+    for s in result.summaries:
+        cols = []
+        for f in faults:
+            p = s["detection_probability"].get(f)
+            d = s["median_delay_s"].get(f)
+            cols.append(
+                f"{_fmt(p, '.3f'):>12s} / {_fmt(None if d is None else d * 1e3, '.1f'):>6s}"
+            )
+        print(
+            f"{s['method']:6s} {s['case'][:24]:24s} {s['magnitude']:5.2f} {s['noise_scale']:5.2f} "
+            f"{s['runs']:5d}  " + "  ".join(cols) + f"  {s['false_declarations']:5d} "
+            f"{_fmt(s['false_alarm_rate_per_hour'], '8.2f'):>8s} "
+            f"{_fmt(s['isolation_accuracy'], '.3f'):>6s} {s['mode_accuracy']:8.4f}"
+        )
+
+
+def _force_host_devices(count: int) -> None:
+    import os
+
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_force_host_platform_device_count" in flags:
+        raise ValueError("--host-devices: XLA_FLAGS already sets the host device count")
+    os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={count}".strip()
+
+
+def _cmd_sweep(args) -> int:
+    if args.host_devices:
+        _force_host_devices(args.host_devices)
+    import jax
+
+    if args.host_devices and jax.default_backend() == "cpu":
+        if len(jax.devices()) != args.host_devices:
+            raise ValueError(
+                f"--host-devices {args.host_devices}: JAX had already started with "
+                f"{len(jax.devices())} device(s)"
+            )
+
+    from uimm_jax.montecarlo import run_sweep, sweep_spec, write_sweep_outputs
+    from uimm_jax.scenarios import load_scenario
+
+    sc = load_scenario(args.scenario)
+    opts = dict(
+        runs=args.runs,
+        methods=args.methods,
+        magnitudes=args.magnitudes,
+        noise_scales=args.noise_scales,
+        fault_free=args.fault_free,
+        seed=args.seed,
+        batch=args.batch,
+        chunk=args.chunk,
+    )
+    spec = sweep_spec(sc, **opts)  # validate before anything is compiled
+    ncells = (
+        len(spec.methods)
+        * len(spec.noise_scales)
+        * (int(spec.fault_free) + len(spec.cases) * len(spec.magnitudes))
+    )
+    print(
+        f"sweep {sc.name} from {args.scenario}: {ncells} cells x {spec.runs} runs x "
+        f"{sc.num_steps} steps ({ncells * spec.runs * sc.num_steps:.3g} run-steps), "
+        f"methods {', '.join(spec.methods)}, {args.devices or len(jax.devices())} device(s)",
+        file=sys.stderr,
+    )
+    t0 = time.perf_counter()
+    result = run_sweep(sc, **opts, devices=args.devices, progress=not args.quiet)
+    wall = time.perf_counter() - t0
+    out = Path(args.out)
+    written = write_sweep_outputs(
+        result,
+        out,
+        figures=not args.no_plots,
+        extra={"wall_time_s": wall, "command": " ".join(sys.argv)},
+    )
+    _print_table(result)
+    print(
+        f"{result.run_steps:.3g} run-steps in {wall:.1f} s "
+        f"({result.run_steps / wall / 1e6:.2f} M run-steps/s, compilation included)"
+    )
+    print(f"wrote {len(written)} files to {out}")
+    return 0

@@ -1,0 +1,514 @@
+"""Monte Carlo sweeps: spec validation, metrics vs a loop of single runs, sharding, CLI.
+
+The sweep's fused kernel (truth + diagnoser + metrics in one scan over a batch of runs) is
+checked against a Python loop of single runs built from the engine's single-run pieces
+(``truth_step`` in a scan, ``runner.filter_measurements``, ``runner.summarize``) with the
+same per-run keys; the onset draws are recomputed here from the documented key recipe.
+The sharded run (4 forced CPU devices) runs in a subprocess started when the module's
+fixture is first used, in parallel with the in-process tests.
+"""
+
+import functools
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from uimm_jax import montecarlo as mc
+from uimm_jax import runner
+from uimm_jax.errors import ScenarioError
+from uimm_jax.scenarios import load_scenario, parse_scenario, scenario_to_dict
+from uimm_jax.simulate import truth_step
+
+ROOT = Path(__file__).resolve().parents[1]
+SEED = 7
+RUNS = 2
+BATCH = 32  # 10 cells x 2 runs: one batch, padded to 8 runs per device on 4 devices
+
+SWEEP = {
+    "runs": RUNS,
+    "seed": SEED,
+    "methods": ["uimm"],
+    "magnitudes": [0.6, 1.0],
+    "noise_scales": [1.0, 2.0],
+    "fault_free": True,
+    "batch": BATCH,
+    "chunk": 100_000,
+    "cases": [
+        {
+            "name": "sim1",
+            "events": [
+                {"fault": "valve_wear", "time": 0.05},
+                {"fault": "leakage", "time": [0.09, 0.12]},
+            ],
+        },
+        {
+            "name": "sim2",
+            "events": [
+                {"fault": "valve_wear", "time": [0.03, 0.07]},
+                {"fault": "air_in_oil", "time": 0.1, "magnitude": 0.8},
+            ],
+        },
+    ],
+}
+
+
+def small_scenario(sweep=None):
+    """paper_sim1_tuned shortened to 2000 samples, with a [sweep] table."""
+    d = scenario_to_dict(load_scenario(ROOT / "scenarios" / "paper_sim1_tuned.toml"))
+    d["duration"] = 0.2
+    d["events"] = [
+        {"time": 0.05, "fault": "valve_wear"},
+        {"time": 0.1, "fault": "leakage"},
+    ]
+    d["sweep"] = SWEEP if sweep is None else sweep
+    return parse_scenario(d, source="small")
+
+
+_SUBPROCESS = textwrap.dedent(
+    """
+    import sys
+    sys.path.insert(0, {tests!r})
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import numpy as np
+    from test_montecarlo import small_scenario
+    from uimm_jax import montecarlo as mc
+
+    assert len(jax.devices()) == 4, jax.devices()
+    res = mc.run_sweep(small_scenario())
+    assert res.devices == 4
+    np.savez({out!r}, decl_step=res.decl_step, onset_step=res.onset_step,
+             correct=res.correct_samples, sq_err=res.sq_err, health=res.health)
+    """
+)
+
+
+@pytest.fixture(scope="module")
+def sharded_proc(tmp_path_factory):
+    """Start the 4-device sweep in a subprocess (collected by the sharding test)."""
+    out = tmp_path_factory.mktemp("sharded") / "sharded.npz"
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = (
+        env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
+    ).strip()
+    env["JAX_PLATFORMS"] = "cpu"
+    code = _SUBPROCESS.format(tests=str(Path(__file__).parent), out=str(out))
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    yield proc, out
+    if proc.poll() is None:
+        proc.kill()
+        proc.communicate()
+
+
+@pytest.fixture(scope="module")
+def sweep(sharded_proc):
+    del sharded_proc  # started first, so that it runs while this one compiles
+    return mc.run_sweep(small_scenario())
+
+
+# --------------------------------------------------------------------------------------
+# Specification
+# --------------------------------------------------------------------------------------
+
+
+def test_spec_defaults_from_scenario():
+    sc = load_scenario(ROOT / "scenarios" / "paper_sim2_tuned.toml")
+    spec = mc.sweep_spec(sc)
+    assert spec.runs == 100 and spec.seed == sc.seed
+    assert spec.methods == ("uimm",) and spec.magnitudes == (1.0,)
+    assert spec.fault_free
+    assert len(spec.cases) == 1
+    assert [(e.fault, e.time) for e in spec.cases[0].events] == [
+        ("valve_wear", (30.0, 30.0)),
+        ("air_in_oil", (60.0, 60.0)),
+    ]
+    spec = mc.sweep_spec(sc, runs=3, methods=["imm", "uimm"], magnitudes=[0.5, 1.0])
+    assert (spec.runs, spec.methods, spec.magnitudes) == (3, ("imm", "uimm"), (0.5, 1.0))
+    cells = mc._cells(spec)
+    assert len(cells) == 2 * (1 + 2)
+    assert [c.index for c in cells] == list(range(len(cells)))
+
+
+@pytest.mark.parametrize(
+    ("patch", "field", "words"),
+    [
+        ({"runs": 0}, "[sweep].runs", ">= 1"),
+        ({"runs": 2.5}, "[sweep].runs", "integer"),
+        ({"rusn": 3}, "[sweep].rusn", "unknown key"),
+        ({"methods": ["ukf"]}, "[sweep].methods[0]", "'uimm' or 'imm'"),
+        ({"methods": ["uimm", "uimm"]}, "[sweep].methods", "repeated"),
+        ({"magnitudes": [1.0, -0.5]}, "[sweep].magnitudes[1]", "> 0"),
+        ({"noise_scales": []}, "[sweep].noise_scales", "non-empty"),
+        ({"fault_free": "yes"}, "[sweep].fault_free", "true or false"),
+        ({"seed": -1}, "[sweep].seed", ">= 0"),
+        ({"batch": 0}, "[sweep].batch", ">= 1"),
+        ({"cases": {"a": 1}}, "[sweep].cases", "array of tables"),
+        (
+            {"cases": [{"name": "x", "events": [{"fault": "wear", "time": 0.1}]}]},
+            "[sweep].cases[0].events[0].fault",
+            "unknown fault 'wear'",
+        ),
+        (
+            {"cases": [{"name": "x", "events": [{"fault": "leakage", "time": 0.5}]}]},
+            "[sweep].cases[0].events[0].time",
+            "outside the run",
+        ),
+        (
+            {"cases": [{"name": "x", "events": [{"fault": "leakage", "time": [0.1, 0.05]}]}]},
+            "[sweep].cases[0].events[0].time",
+            "reversed",
+        ),
+        (
+            {"cases": [{"name": "x", "events": [{"fault": "leakage"}]}]},
+            "[sweep].cases[0].events[0].time",
+            "missing",
+        ),
+        (
+            {
+                "cases": [
+                    {
+                        "name": "x",
+                        "events": [
+                            {"fault": "leakage", "time": 0.1},
+                            {"fault": "leakage", "time": 0.15},
+                        ],
+                    }
+                ]
+            },
+            "[sweep].cases[0].events",
+            "occurs twice",
+        ),
+        (
+            {"cases": [{"name": "fault-free", "events": [{"fault": "leakage", "time": 0.1}]}]},
+            "[sweep].cases[0].name",
+            "reserved",
+        ),
+        ({"cases": [{"name": "x", "events": []}]}, "[sweep].cases[0].events", "non-empty"),
+        (
+            {"cases": [{"name": "x", "events": [{"fault": "leakage", "time": 0.1, "mag": 2}]}]},
+            "[sweep].cases[0].events[0].mag",
+            "unknown key",
+        ),
+    ],
+)
+def test_spec_errors_name_the_field(patch, field, words):
+    sc = small_scenario({**SWEEP, **patch})
+    with pytest.raises(ScenarioError) as err:
+        mc.sweep_spec(sc)
+    assert err.value.field == field
+    assert words in str(err.value)
+    assert str(err.value).startswith("small: " + field)
+
+
+def test_nothing_to_run_is_an_error():
+    sc = small_scenario({"fault_free": False, "cases": []})
+    with pytest.raises(ScenarioError, match="nothing to run"):
+        mc.sweep_spec(sc)
+
+
+def test_argument_overrides_are_validated():
+    sc = small_scenario()
+    with pytest.raises(ScenarioError) as err:
+        mc.sweep_spec(sc, runs=0)
+    assert err.value.field == "runs"
+
+
+# --------------------------------------------------------------------------------------
+# Statistics
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("k", "n"), [(0, 10), (3, 10), (10, 10), (57, 64), (1, 1)])
+def test_wilson_interval_matches_scipy(k, n):
+    stats = pytest.importorskip("scipy.stats")
+    ref = stats.binomtest(k, n).proportion_ci(confidence_level=0.95, method="wilson")
+    lo, hi = mc.wilson_interval(k, n)
+    np.testing.assert_allclose([lo, hi], [ref.low, ref.high], rtol=1e-12, atol=1e-15)
+    assert mc.wilson_interval(0, 0) is None
+
+
+def test_confusion_definition():
+    N = 100
+    # faults: 0, 1, 2 ; rows: fault-free, f0, f1, f2 ; columns: f0, f1, f2, none
+    onset = np.array(
+        [
+            [10, 50, -1],  # f0 then f1
+            [10, 50, -1],
+            [10, 50, -1],
+            [-1, -1, -1],  # fault-free run
+            [20, 20, -1],  # simultaneous onsets
+        ]
+    )
+    decl = np.array(
+        [
+            [12, 55, -1],  # both isolated in their windows
+            [60, 70, -1],  # f0 late (outside its window): f0 row 'none'; f1 row: f1
+            [5, -1, 52],  # false f0 before onset; f0 row none; f1 row -> f2
+            [-1, 30, 30],  # fault-free: first declarations tie -> lowest index (f1)
+            [25, 25, -1],  # tie within the window: each event gets its own fault
+        ]
+    )
+    got = mc._confusion(onset, decl, N)
+    want = np.zeros((4, 4), int)
+    want[0, 3] += 1  # run 0 fault-free period
+    want[1, 0] += 1
+    want[2, 1] += 1
+    want[0, 3] += 1  # run 1
+    want[1, 3] += 1
+    want[2, 1] += 1
+    want[0, 0] += 1  # run 2: false f0 in the fault-free period
+    want[1, 3] += 1  # f0 already declared before its onset: nothing new in [10, 50)
+    want[2, 2] += 1
+    want[0, 1] += 1  # run 3
+    want[0, 3] += 1  # run 4
+    want[1, 0] += 1
+    want[2, 1] += 1
+    np.testing.assert_array_equal(got, want)
+
+
+# --------------------------------------------------------------------------------------
+# The fused kernel against a loop of single runs
+# --------------------------------------------------------------------------------------
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 2))
+def _simulate_one(dyn, dt, num_steps, plan, signal, key):
+    from uimm_jax.simulate import input_value
+
+    def body(x, k):
+        t = k.astype(x.dtype) * dt
+        u = jnp.full((1,), input_value(signal, t), x.dtype)
+        xn, y, code = truth_step(dyn, plan, x, k, u, key)
+        return xn, (u, xn, y, code)
+
+    _, out = jax.lax.scan(body, jnp.zeros(3), jnp.arange(num_steps, dtype=jnp.int32))
+    return out
+
+
+def _onset_draw(seed, runs, r, e, lo, hi, dt):
+    """The documented recipe, recomputed independently of montecarlo.run_keys."""
+    if hi == lo:
+        return int(round(lo / dt))
+    key = jax.random.split(jax.random.PRNGKey(seed), runs)[r]
+    draw_key = jax.random.split(key)[1]
+    u = float(jax.random.uniform(jax.random.fold_in(draw_key, e), (), jnp.float64))
+    return int(round((lo + (hi - lo) * u) / dt))
+
+
+def _reference(sc, cell, r):
+    """One run with the engine's single-run pieces: summary, truth states and estimates."""
+    d = scenario_to_dict(sc)
+    d.pop("sweep")
+    events = []
+    if cell.case != "fault-free":
+        case = next(c for c in SWEEP["cases"] if c["name"] == cell.case)
+        for e, ev in enumerate(case["events"]):
+            t = ev["time"]
+            lo, hi = (t, t) if not isinstance(t, list) else t
+            step = _onset_draw(SEED, RUNS, r, e, lo, hi, sc.dt)
+            events.append(
+                {"fault": ev["fault"], "time": step * sc.dt, "magnitude": ev.get("magnitude", 1.0)}
+            )
+    d["events"] = events
+    one = parse_scenario(d)
+    setup = runner.setup_scenario(one, cell.method, magnitude_scale=cell.magnitude or 1.0)
+    plan = setup.plan._replace(
+        Gq=setup.plan.Gq * cell.noise_scale, Gr=setup.plan.Gr * cell.noise_scale
+    )
+    key = jax.random.split(jax.random.split(jax.random.PRNGKey(SEED), RUNS)[r])[0]
+    u, x, y, code = _simulate_one(
+        setup.diagnoser.dyn, float(one.dt), one.num_steps, plan, setup.signal, key
+    )
+    _, out = runner.filter_measurements(setup, np.asarray(y), np.asarray(u))
+    summary = runner.summarize(setup, np.asarray(code), out, runtime_s=1.0)
+    return summary, setup.event_steps, np.asarray(x), out["mean"]
+
+
+def test_sweep_matches_loop_of_single_runs(sweep):
+    sc = small_scenario()
+    N, dt = sc.num_steps, sc.dt
+    faults = list(sc.fault_names)
+    assert len(sweep.cells) == 10
+    detected_any = false_any = 0
+    for cell in sweep.cells:
+        c = cell.index
+        ref_delays = {f: [] for f in faults}
+        ref_false = 0
+        ref_correct = 0.0
+        ref_sq = np.zeros(3)
+        for r in range(RUNS):
+            s, ev_steps, x, mean = _reference(sc, cell, r)
+            # Onsets (drawn in windows) and declarations, run by run.
+            for ev, k in zip(s["events"], ev_steps, strict=True):
+                assert sweep.onset_step[c, r, faults.index(ev["fault"])] == k
+            want_decl = np.full(len(faults), -1)
+            for dcl in s["declarations"]:
+                want_decl[faults.index(dcl["fault"])] = round(dcl["time"] / dt) - 1
+            np.testing.assert_array_equal(sweep.decl_step[c, r], want_decl)
+            assert sweep.false_declared()[c, r].sum() == s["false_declarations"]
+            assert sweep.correct_samples[c, r] / N == s["mode_accuracy"]
+            for f, delay in s["detection_delay_s"].items():
+                got = (
+                    sweep.decl_step[c, r, faults.index(f)] - sweep.onset_step[c, r, faults.index(f)]
+                )
+                if delay is None:
+                    assert not sweep.detected()[c, r, faults.index(f)]
+                else:
+                    assert got * dt == delay
+                    ref_delays[f].append(delay)
+            ref_false += s["false_declarations"]
+            ref_correct += s["mode_accuracy"] * N
+            ref_sq += np.sum((mean - x) ** 2, axis=0)
+        # Cell aggregates.
+        summ = sweep.summaries[c]
+        assert summ["runs"] == RUNS
+        assert summ["false_declarations"] == ref_false
+        assert summ["mode_accuracy"] == ref_correct / (RUNS * N)
+        for f in summ["detection_probability"]:
+            assert summ["detection_probability"][f] == len(ref_delays[f]) / RUNS
+            med = float(np.median(ref_delays[f])) if ref_delays[f] else None
+            assert summ["median_delay_s"][f] == med
+        np.testing.assert_allclose(
+            list(summ["state_rmse"].values()), np.sqrt(ref_sq / (RUNS * N)), rtol=1e-9
+        )
+        detected_any += sum(len(v) for v in ref_delays.values())
+        false_any += ref_false
+    # The small sweep exercises both detections and misses.
+    assert detected_any > 0
+    assert np.any(~sweep.detected() & (sweep.onset_step >= 0))
+
+
+def test_cells_and_json_schema(sweep):
+    doc = sweep.to_json()
+    json.dumps(doc)  # serialisable
+    assert doc["runs"] == RUNS and len(doc["cells"]) == 10
+    for cell in doc["cells"]:
+        for key in (
+            "method",
+            "magnitude",
+            "runs",
+            "detection_probability",
+            "median_delay_s",
+            "false_declarations",
+            "isolation_accuracy",
+            "mode_accuracy",
+            "false_alarm_rate_per_hour",
+            "confusion",
+            "state_rmse",
+            "detection_probability_ci",
+        ):
+            assert key in cell
+        conf = np.array(cell["confusion"]["matrix"])
+        # One fault-free period per run, one row entry per event.
+        assert conf[0].sum() == RUNS
+        events = sum(cell["events"].values())
+        assert conf[1:].sum() == events
+        if cell["case"] == "fault-free":
+            assert cell["magnitude"] == 0.0 and cell["detection_probability"] == {}
+            assert cell["fault_free_hours"] == pytest.approx(RUNS * 0.2 / 3600)
+            assert cell["isolation_accuracy"] is None
+
+
+def test_same_seed_same_bits_other_seed_differs(sweep):
+    again = mc.run_sweep(small_scenario())
+    for name in ("decl_step", "onset_step", "correct_samples", "sq_err", "health"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(sweep, name))
+    other = mc.run_sweep(small_scenario(), seed=SEED + 1)
+    assert not np.array_equal(other.sq_err, sweep.sq_err)
+
+
+def test_second_sweep_compiles_no_kernel(sweep, caplog):
+    import logging
+
+    with jax.log_compiles(True), caplog.at_level(logging.WARNING):
+        mc.run_sweep(small_scenario(), seed=SEED + 2)
+    compiled = [r.getMessage() for r in caplog.records if "Compiling" in r.getMessage()]
+    assert not [m for m in compiled if "_scan_chunk" in m], compiled
+
+
+def test_sharded_equals_unsharded(sweep, sharded_proc):
+    proc, out = sharded_proc
+    stdout, stderr = proc.communicate(timeout=600)
+    assert proc.returncode == 0, stderr[-3000:]
+    got = np.load(out)
+    np.testing.assert_array_equal(got["onset_step"], sweep.onset_step)
+    np.testing.assert_array_equal(got["decl_step"], sweep.decl_step)
+    np.testing.assert_array_equal(got["correct"], sweep.correct_samples)
+    np.testing.assert_array_equal(got["health"], sweep.health)
+    np.testing.assert_array_equal(got["sq_err"], sweep.sq_err)
+
+
+# --------------------------------------------------------------------------------------
+# CLI and outputs
+# --------------------------------------------------------------------------------------
+
+
+def test_cli_sweep_writes_results(sweep, tmp_path, capsys):
+    from uimm_jax.cli import main
+    from uimm_jax.scenarios import dump_scenario
+
+    path = dump_scenario(small_scenario(), tmp_path / "small.toml")
+    out = tmp_path / "out"
+    rc = main(["sweep", str(path), "--out", str(out), "--quiet"])
+    assert rc == 0
+    doc = json.loads((out / "results.json").read_text())
+    assert len(doc["cells"]) == 10
+    # The CLI run is the same sweep: same numbers.
+    for got, want in zip(doc["cells"], sweep.summaries, strict=True):
+        assert got["detection_probability"] == want["detection_probability"]
+        assert got["mode_accuracy"] == want["mode_accuracy"]
+    rows = (out / "results.csv").read_text().strip().splitlines()
+    assert len(rows) == 1 + 10
+    for name in ("sweep_sim1.png", "sweep_sim2.png", "confusion_uimm.png"):
+        assert (out / name).stat().st_size > 1000
+    printed = capsys.readouterr().out
+    assert "fault-free" in printed and "run-steps" in printed
+
+
+def test_cli_sweep_reports_bad_field(tmp_path, capsys):
+    from uimm_jax.cli import main
+    from uimm_jax.scenarios import dump_scenario
+
+    path = dump_scenario(small_scenario({"runs": 0}), tmp_path / "bad.toml")
+    assert main(["sweep", str(path), "--quiet"]) == 2
+    assert "[sweep].runs" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["sweep_paper.toml", "sweep_magnitude.toml"])
+def test_sweep_files_are_in_sync_with_the_tuned_scenarios(name):
+    sweep_sc = load_scenario(ROOT / "scenarios" / name)
+    sim1 = scenario_to_dict(load_scenario(ROOT / "scenarios" / "paper_sim1_tuned.toml"))
+    sim2 = load_scenario(ROOT / "scenarios" / "paper_sim2_tuned.toml")
+    mine = scenario_to_dict(sweep_sc)
+    for key in ("dt", "plant", "input", "noise", "faults", "filter"):
+        assert mine[key] == sim1[key], key
+    # Same events, times scaled with the duration.
+    scale = mine["duration"] / sim1["duration"]
+    for a, b in zip(mine["events"], sim1["events"], strict=True):
+        assert (a["fault"], a["time"], a["magnitude"]) == (
+            b["fault"],
+            b["time"] * scale,
+            b["magnitude"],
+        )
+    spec = mc.sweep_spec(sweep_sc)
+    assert spec.fault_free and set(spec.methods) == {"uimm", "imm"}
+    cases = {c.name: c.events for c in spec.cases}
+    for case, ref in (("sim1", sim1["events"]), ("sim2", scenario_to_dict(sim2)["events"])):
+        assert [e.fault for e in cases[case]] == [e["fault"] for e in ref]
+        for e, r in zip(cases[case], ref, strict=True):
+            assert e.time[0] <= r["time"] * scale <= e.time[1]
+            assert e.magnitude == r["magnitude"]
