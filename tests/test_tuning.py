@@ -10,6 +10,7 @@ fault-free run, precomputed truth, one scan segment.
 """
 
 import dataclasses
+import json
 import os
 import subprocess
 import sys
@@ -293,3 +294,30 @@ def test_cli_tune_registered_and_refuses_training_seed_as_eval_seed(tmp_path):
     )
     assert bad.returncode == 2
     assert "--eval-seed must differ" in bad.stderr
+
+
+def test_cli_tune_eval_only_evaluates_an_existing_file(tmp_path):
+    """``--eval-only`` skips training, keeps the file and records a before/after table."""
+    exe = [sys.executable, "-m", "uimm_jax", "tune", str(ROOT / "scenarios" / "paper_sim1.toml")]
+    missing = subprocess.run(
+        exe + ["--out", str(tmp_path / "none.toml"), "--eval-only"],
+        capture_output=True,
+        text=True,
+    )
+    assert missing.returncode == 2 and "does not exist" in missing.stderr
+    tuned = tmp_path / "t.toml"
+    text = (ROOT / "scenarios" / "paper_sim1_tuned.toml").read_text()
+    tuned.write_text(text)
+    (tmp_path / "t.tune.json").write_text(json.dumps({"history": [3.0, 2.0]}))
+    args = ["--out", str(tuned), "--eval-only", "--eval-runs", "2", "--eval-duration", "0.3"]
+    res = subprocess.run(exe + args + ["--quiet"], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert tuned.read_text() == text  # the tuned file is not rewritten
+    record = json.loads((tmp_path / "t.tune.json").read_text())
+    assert record["history"] == [3.0, 2.0]  # the training record is kept
+    ev = record["evaluation"]
+    assert ev["runs"] == 2
+    for side in ("before", "after"):
+        cases = {k: v for k, v in ev[side].items() if not k.startswith("_")}
+        assert cases and all(c["runs"] == 2 for c in cases.values())
+    assert "| metric (held-out runs)" in record["evaluation_table"]

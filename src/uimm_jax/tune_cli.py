@@ -97,6 +97,12 @@ def register(subparsers) -> None:
         help="evaluate the events of this scenario too (same fault library); repeatable",
     )
     t.add_argument("--no-eval", action="store_true", help="skip the before/after evaluation")
+    t.add_argument(
+        "--eval-only",
+        action="store_true",
+        help="do not train: evaluate the existing --out file against SCENARIO (the training "
+        "record in the .tune.json beside it, if any, is kept)",
+    )
     t.add_argument("--quiet", action="store_true", help="no progress output")
     t.set_defaults(func=_cmd_tune)
 
@@ -114,10 +120,8 @@ def _table(rows: list[tuple[str, str, str]]) -> str:
 
 
 def _cmd_tune(args) -> int:
-    import numpy as np
-
-    from uimm_jax import plotting, tuning
-    from uimm_jax.scenarios import dump_scenario, load_scenario, parse_scenario
+    from uimm_jax import tuning
+    from uimm_jax.scenarios import load_scenario
 
     quiet = args.quiet
     log = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))
@@ -144,6 +148,50 @@ def _cmd_tune(args) -> int:
         temperature=args.temperature,
         weights=weights,
     )
+    out = Path(args.out)
+    js = out.with_suffix(".tune.json")
+    if args.eval_only:
+        if args.no_eval:
+            raise ValueError("--eval-only and --no-eval exclude each other")
+        if not out.is_file():
+            raise ValueError(f"--eval-only: {out} does not exist; run the tuning first")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            tuned_sc = load_scenario(out)
+        record = json.loads(js.read_text()) if js.is_file() else {"scenario": str(args.scenario)}
+    else:
+        tuned_sc, record = _train(args, sc, config, log)
+        # Written now (and again after the evaluation) so that a long evaluation that is
+        # interrupted does not lose the training record.
+        js.write_text(json.dumps(record, indent=2, default=_plain) + "\n")
+    if not args.no_eval:
+        eval_dur = float(args.eval_duration or sc.duration)
+        before_sc = tuning.rescale_scenario(sc, eval_dur)
+        after_sc = tuning.rescale_scenario(tuned_sc, eval_dur)
+        extra = [tuning.rescale_scenario(a, eval_dur) for a in also]
+        log(
+            f"held-out evaluation: {args.eval_runs} runs per case of {eval_dur:g} s, "
+            f"seed {eval_seed} (training seed {train_seed})"
+        )
+        table, ev = tuning.before_after(
+            before_sc, after_sc, extra, runs=args.eval_runs, seed=eval_seed, progress=not quiet
+        )
+        record["evaluation"] = ev
+        record["evaluation_table"] = table
+        print(table)
+    js.write_text(json.dumps(record, indent=2, default=_plain) + "\n")
+    print(f"wrote {js}")
+    return 0
+
+
+def _train(args, sc, config, log):
+    """Fit the settings, write the tuned scenario and its loss curve: ``(tuned, record)``."""
+    import numpy as np
+
+    from uimm_jax import plotting, tuning
+    from uimm_jax.scenarios import dump_scenario, parse_scenario
+
+    train_seed = args.seed if args.seed is not None else int(sc.seed) + 1_000_003
     train_dur = float(args.train_duration or sc.duration)
     train_sc = tuning.rescale_scenario(sc, train_dur)
     cases = [tuning.scenario_case(train_sc)]
@@ -173,7 +221,7 @@ def _cmd_tune(args) -> int:
         iters=args.iters,
         learning_rate=args.lr,
         warmup=args.warmup,
-        progress=not quiet,
+        progress=not args.quiet,
     )
     settings = tuning.settings_from_params(res.params, M, config)
     doc = tuning.tuned_scenario(sc, settings)
@@ -214,24 +262,7 @@ def _cmd_tune(args) -> int:
         f"tuned: threshold {settings['threshold']:.6g}, hold {settings['hold']}, "
         f"transition diagonal {np.round(np.diag(settings['transition']), 8).tolist()}"
     )
-    if not args.no_eval:
-        eval_dur = float(args.eval_duration or sc.duration)
-        before_sc = tuning.rescale_scenario(sc, eval_dur)
-        after_sc = tuning.rescale_scenario(tuned_sc, eval_dur)
-        extra = [tuning.rescale_scenario(a, eval_dur) for a in also]
-        log(
-            f"held-out evaluation: {args.eval_runs} runs per case of {eval_dur:g} s, "
-            f"seed {eval_seed} (training seed {train_seed})"
-        )
-        table, ev = tuning.before_after(
-            before_sc, after_sc, extra, runs=args.eval_runs, seed=eval_seed, progress=not quiet
-        )
-        record["evaluation"] = ev
-        print(table)
-    js = out.with_suffix(".tune.json")
-    js.write_text(json.dumps(record, indent=2, default=_plain) + "\n")
-    print(f"wrote {js}")
-    return 0
+    return tuned_sc, record
 
 
 def _plain(obj):

@@ -1103,11 +1103,16 @@ def _sweep_cases(scenarios) -> list[dict]:
     return cases
 
 
-def evaluate(scenario, extra=(), *, runs: int = 200, seed: int = 0, progress=False) -> dict:
+def evaluate(
+    scenario, extra=(), *, runs: int = 200, seed: int = 0, progress=False, cases_from=None
+) -> dict:
     """Monte Carlo metrics of a scenario's filter settings with the exact hard rule.
 
     Runs :func:`uimm_jax.montecarlo.run_sweep` on the scenario's events, the events of
-    each ``extra`` scenario (same fault library) and the fault-free case.
+    each ``extra`` scenario (same fault library) and the fault-free case.  ``cases_from``
+    (a list of scenarios) replaces ``[scenario, *extra]`` as the source of the cases'
+    events and names, so that two settings can be compared on identical, identically
+    named cases.
 
     Returns:
         dict ``case -> metrics`` with, per case, ``runs``, ``all_correct`` (fraction of
@@ -1123,7 +1128,7 @@ def evaluate(scenario, extra=(), *, runs: int = 200, seed: int = 0, progress=Fal
         runs=runs,
         seed=seed,
         methods=("uimm",),
-        cases=_sweep_cases([scenario, *extra]),
+        cases=_sweep_cases([scenario, *extra] if cases_from is None else cases_from),
         fault_free=True,
         progress=progress,
     )
@@ -1215,8 +1220,10 @@ def before_after(before_scenario, after_scenario, extra=(), *, runs=200, seed=0,
     ``extra`` scenarios contribute their events as further cases; they are evaluated with
     the settings of ``before_scenario`` / ``after_scenario`` (only their events are used).
     """
-    b = evaluate(before_scenario, extra, runs=runs, seed=seed, progress=progress)
-    a = evaluate(after_scenario, extra, runs=runs, seed=seed, progress=progress)
+    # Both settings run on the cases (events, names) of ``before_scenario`` and ``extra``.
+    cases = [before_scenario, *extra]
+    b = evaluate(before_scenario, runs=runs, seed=seed, progress=progress, cases_from=cases)
+    a = evaluate(after_scenario, runs=runs, seed=seed, progress=progress, cases_from=cases)
     return before_after_table(b, a), {"before": b, "after": a, "seed": seed, "runs": runs}
 
 
