@@ -74,6 +74,8 @@ from pathlib import Path
 
 import numpy as np
 
+from _common import vm_mib
+
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 BASE_SCENARIO = ROOT / "scenarios" / "paper_sim1_tuned.toml"
@@ -88,17 +90,6 @@ _T0 = time.perf_counter()
 def log(msg: str) -> None:
     """Progress line on stderr with the elapsed wall time."""
     print(f"[{time.perf_counter() - _T0:7.1f} s] {msg}", file=sys.stderr, flush=True)
-
-
-def _vm(field: str) -> float:
-    """A /proc/self/status size in MiB (Linux; NaN elsewhere)."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith(field + ":"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return float("nan")
 
 
 def _ram_bytes() -> float:
@@ -444,7 +435,7 @@ def _child_main(args) -> None:
         "xla_flags_on": bool(flags_on),
         "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""),
         "imm": {str(k): v for k, v in res.items()},
-        "vm_hwm_mib": _vm("VmHWM"),
+        "vm_hwm_mib": vm_mib("VmHWM"),
     }
     print(RESULT_MARK + json.dumps(out), flush=True)
 
@@ -1033,7 +1024,7 @@ def main(argv=None) -> dict:
         }
         results["stress_wall_s"] = time.perf_counter() - t0
     results["wall_s"] = time.perf_counter() - t_all
-    results["machine"]["vm_hwm_mib"] = _vm("VmHWM")
+    results["machine"]["vm_hwm_mib"] = vm_mib("VmHWM")
     results["machine"]["load_avg_end"] = os.getloadavg()
     results["summary"] = summary_lines(results)
 

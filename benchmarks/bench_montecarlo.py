@@ -30,18 +30,9 @@ import sys
 import time
 from pathlib import Path
 
+from _common import vm_mib
+
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _vm(field: str) -> float:
-    """A /proc/self/status size in MiB (Linux)."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith(field + ":"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return float("nan")
 
 
 def _scenario(num_steps: int):
@@ -73,7 +64,7 @@ def worker(args) -> dict:
 
     sc = _scenario(args.steps)
     N, L = args.steps, args.chunk
-    rss0 = _vm("VmRSS")
+    rss0 = vm_mib("VmRSS")
     if args.worker == "single":
         setup = runner.setup_scenario(sc, "uimm")
 
@@ -88,7 +79,7 @@ def worker(args) -> dict:
 
         del setup
         t_first = once(L)  # compile + one chunk
-        hwm_compile = _vm("VmHWM")
+        hwm_compile = vm_mib("VmHWM")
         t_run = once(N)
         B = 1
     else:
@@ -128,7 +119,7 @@ def worker(args) -> dict:
             return elapsed, m
 
         t_first, _ = once(L)
-        hwm_compile = _vm("VmHWM")
+        hwm_compile = vm_mib("VmHWM")
         t_run, m = once(N)
         if args.check:
             assert np.all(m.decl_step[:, 0] >= round(0.3 * N)), m.decl_step
@@ -144,7 +135,7 @@ def worker(args) -> dict:
         "compile_s": max(t_first - per_chunk, 0.0),
         "rss_start_mib": rss0,
         "hwm_after_compile_mib": hwm_compile,
-        "hwm_end_mib": _vm("VmHWM"),
+        "hwm_end_mib": vm_mib("VmHWM"),
     }
 
 

@@ -36,6 +36,7 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+from _common import PAPER_SCENARIOS  # noqa: E402
 from uimm_jax.errors import UIMMWarning  # noqa: E402
 from uimm_jax.runner import (  # noqa: E402
     filter_measurements,
@@ -47,15 +48,7 @@ from uimm_jax.scaling import filter_float32, float32_agreement, setup_float32  #
 from uimm_jax.scenarios import load_scenario, parse_scenario, scenario_to_dict  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-DEFAULT = [
-    REPO / "scenarios" / name
-    for name in (
-        "paper_sim1_tuned.toml",
-        "paper_sim2_tuned.toml",
-        "paper_sim1.toml",
-        "paper_sim2.toml",
-    )
-]
+DEFAULT = PAPER_SCENARIOS
 
 
 def timed(fn, repeat):

@@ -6,6 +6,7 @@ multi-fault event generator of ``benchmarks/bench_model_count.py`` is checked he
 """
 
 import importlib.util
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +26,9 @@ PAPER = {
 
 
 def _bench():
+    bench_dir = str(ROOT / "benchmarks")  # the script imports its sibling ``_common``
+    if bench_dir not in sys.path:
+        sys.path.insert(0, bench_dir)
     spec = importlib.util.spec_from_file_location(
         "bench_model_count", ROOT / "benchmarks" / "bench_model_count.py"
     )
