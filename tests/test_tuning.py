@@ -240,6 +240,7 @@ def test_tuned_scenario_round_trips(tmp_path):
     assert back.filter.decision.threshold == pytest.approx(settings["threshold"], rel=1e-15)
     assert back.filter.decision.hold == 41
     assert back.name == "paper-sim1-tuned"
+    assert tuning.tuned_scenario(back, settings)["name"] == "paper-sim1-tuned"  # no stacking
     # Everything but the filter settings is the source scenario's.
     assert back.events == base.events
     np.testing.assert_array_equal(back.process_noise, base.process_noise)
@@ -321,3 +322,21 @@ def test_cli_tune_eval_only_evaluates_an_existing_file(tmp_path):
         cases = {k: v for k, v in ev[side].items() if not k.startswith("_")}
         assert cases and all(c["runs"] == 2 for c in cases.values())
     assert "| metric (held-out runs)" in record["evaluation_table"]
+    # A second tuned file is compared with the same baseline without re-running it; a
+    # record made differently (other runs) is refused with a message naming the option.
+    other = tmp_path / "u.toml"
+    other.write_text(text)
+    first = str(tmp_path / "t.tune.json")
+    args2 = ["--out", str(other), "--eval-only", "--eval-runs", "2", "--eval-duration", "0.3"]
+    res2 = subprocess.run(
+        exe + args2 + ["--before-from", first, "--quiet"], capture_output=True, text=True
+    )
+    assert res2.returncode == 0, res2.stderr
+    ev2 = json.loads((tmp_path / "u.tune.json").read_text())["evaluation"]
+    assert ev2["before"] == ev["before"]
+    assert ev2["after"]["_sweep"]["runtime_s"] > 0
+    args3 = ["--out", str(other), "--eval-only", "--eval-runs", "3", "--eval-duration", "0.3"]
+    res3 = subprocess.run(
+        exe + args3 + ["--before-from", first, "--quiet"], capture_output=True, text=True
+    )
+    assert res3.returncode == 2 and "--before-from" in res3.stderr

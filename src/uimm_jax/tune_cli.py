@@ -15,6 +15,7 @@ extra evaluation cases (e.g. paper simulation 2).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import sys
 import time
@@ -103,6 +104,12 @@ def register(subparsers) -> None:
         help="do not train: evaluate the existing --out file against SCENARIO (the training "
         "record in the .tune.json beside it, if any, is kept)",
     )
+    t.add_argument(
+        "--before-from",
+        metavar="TUNE_JSON",
+        help="reuse the 'before' evaluation recorded in this .tune.json when it was made "
+        "with the same scenario, --also files, runs, seed and duration (saves a sweep)",
+    )
     t.add_argument("--quiet", action="store_true", help="no progress output")
     t.set_defaults(func=_cmd_tune)
 
@@ -173,15 +180,52 @@ def _cmd_tune(args) -> int:
             f"held-out evaluation: {args.eval_runs} runs per case of {eval_dur:g} s, "
             f"seed {eval_seed} (training seed {train_seed})"
         )
+        eval_args = {
+            "scenario_sha256": _sha256(args.scenario),
+            "also_sha256": [_sha256(a) for a in args.also],
+            "runs": args.eval_runs,
+            "seed": eval_seed,
+            "duration_s": eval_dur,
+        }
+        before = _reusable_before(args.before_from, eval_args, log)
         table, ev = tuning.before_after(
-            before_sc, after_sc, extra, runs=args.eval_runs, seed=eval_seed, progress=not quiet
+            before_sc,
+            after_sc,
+            extra,
+            runs=args.eval_runs,
+            seed=eval_seed,
+            progress=not quiet,
+            before=before,
         )
+        record["evaluation_args"] = eval_args
         record["evaluation"] = ev
         record["evaluation_table"] = table
         print(table)
     js.write_text(json.dumps(record, indent=2, default=_plain) + "\n")
     print(f"wrote {js}")
     return 0
+
+
+def _sha256(path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _reusable_before(path, eval_args: dict, log):
+    """The ``before`` evaluation of another run's ``.tune.json``, if made the same way."""
+    if path is None:
+        return None
+    try:
+        rec = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as err:
+        raise ValueError(f"--before-from: cannot read {path}: {err}") from None
+    if rec.get("evaluation_args") != eval_args or "before" not in rec.get("evaluation", {}):
+        raise ValueError(
+            f"--before-from: {path} was not evaluated with the same scenario, --also files, "
+            f"runs, seed and duration ({rec.get('evaluation_args')} vs {eval_args}); "
+            "drop --before-from to evaluate both settings"
+        )
+    log(f"  reusing the 'before' evaluation of {path}")
+    return rec["evaluation"]["before"]
 
 
 def _train(args, sc, config, log):

@@ -1214,15 +1214,21 @@ def before_after_table(before: dict, after: dict) -> str:
     return "\n".join(lines)
 
 
-def before_after(before_scenario, after_scenario, extra=(), *, runs=200, seed=0, progress=False):
+def before_after(
+    before_scenario, after_scenario, extra=(), *, runs=200, seed=0, progress=False, before=None
+):
     """Evaluate two settings on the same held-out runs: ``(markdown_table, record)``.
 
     ``extra`` scenarios contribute their events as further cases; they are evaluated with
     the settings of ``before_scenario`` / ``after_scenario`` (only their events are used).
+    ``before`` is an earlier :func:`evaluate` result of ``before_scenario`` on the same
+    cases, runs and seed, reused instead of running that sweep again.
     """
     # Both settings run on the cases (events, names) of ``before_scenario`` and ``extra``.
     cases = [before_scenario, *extra]
-    b = evaluate(before_scenario, runs=runs, seed=seed, progress=progress, cases_from=cases)
+    b = before
+    if b is None:
+        b = evaluate(before_scenario, runs=runs, seed=seed, progress=progress, cases_from=cases)
     a = evaluate(after_scenario, runs=runs, seed=seed, progress=progress, cases_from=cases)
     return before_after_table(b, a), {"before": b, "after": a, "seed": seed, "runs": runs}
 
@@ -1238,7 +1244,9 @@ def tuned_scenario(scenario, settings: Mapping[str, Any], *, name: str | None = 
     Args:
         scenario: the source scenario.
         settings: :func:`settings_from_params` output.
-        name: the new scenario name (default: ``<name>-tuned``).
+        name: the new scenario name (default: ``<name>-tuned``, or the name unchanged if
+            it already ends in ``-tuned``, so that tuning a tuned file again does not stack
+            suffixes).
 
     Returns:
         A dict for :func:`~uimm_jax.scenarios.parse_scenario` / ``dump_scenario``.
@@ -1256,5 +1264,6 @@ def tuned_scenario(scenario, settings: Mapping[str, Any], *, name: str | None = 
     flt.setdefault("decision", {})
     flt["decision"]["threshold"] = float(settings["threshold"])
     flt["decision"]["hold"] = int(settings["hold"])
-    d["name"] = name or f"{scenario.name}-tuned"
+    default = scenario.name if scenario.name.endswith("-tuned") else f"{scenario.name}-tuned"
+    d["name"] = name or default
     return d
