@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shlex
 import sys
 import time
 import warnings
@@ -178,7 +179,7 @@ def _cmd_tune(args) -> int:
         extra = [tuning.rescale_scenario(a, eval_dur) for a in also]
         log(
             f"held-out evaluation: {args.eval_runs} runs per case of {eval_dur:g} s, "
-            f"seed {eval_seed} (training seed {train_seed})"
+            f"seed {eval_seed} (training seed {record.get('train_seed', train_seed)})"
         )
         eval_args = {
             "scenario_sha256": _sha256(args.scenario),
@@ -278,6 +279,7 @@ def _train(args, sc, config, log):
     )
     plotting.save_figure(fig, png)
     record = {
+        "command": shlex.join(["uimm-jax", *sys.argv[1:]]),
         "scenario": str(args.scenario),
         "train_seed": train_seed,
         "train_runs": sum(counts),
