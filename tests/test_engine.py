@@ -16,7 +16,6 @@ one chunk length and ``with_cov=True``; the diagnoser is cached by the runner, s
 variants with other decision parameters reuse the same compiled chunk.
 """
 
-import contextlib
 import functools
 import itertools
 import sys
@@ -40,11 +39,11 @@ from uimm_jax.uimm import DiagState, build_diagnoser
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from _engine_helpers import count_backend_compiles  # noqa: E402
 from _reference import make_linear_problem  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SIM1_TUNED = REPO / "scenarios" / "paper_sim1_tuned.toml"
-BACKEND_COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
 LOG_2PI = np.log(2.0 * np.pi)
 
 # The short variant of paper_sim1_tuned shared by the actuator tests.
@@ -56,22 +55,6 @@ NEVER = 2**31 - 1  # a hold (int32) that no run reaches
 
 # ---------------------------------------------------------------------------
 # helpers
-
-
-@contextlib.contextmanager
-def count_backend_compiles():
-    """Collect the names of the XLA compilations that happen inside the block."""
-    names = []
-
-    def listener(event, duration, **kwargs):
-        if event == BACKEND_COMPILE_EVENT:
-            names.append(kwargs.get("fun_name", "?"))
-
-    jax.monitoring.register_event_duration_secs_listener(listener)
-    try:
-        yield names
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listener)
 
 
 def numpy_ekf(f, f_jac, h, h_jac, Q, R, x0, P0, inputs, measurements):

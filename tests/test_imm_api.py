@@ -9,7 +9,6 @@ initial_cov, inputs, measurements)`` returning an object with ``mode_probs (N,M)
 ``tests/test_references.py``.
 """
 
-import contextlib
 import sys
 from pathlib import Path
 
@@ -23,19 +22,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 from _baselines import filterpy_imm, vectorised_numpy_imm  # noqa: E402
+from _engine_helpers import count_backend_compiles  # noqa: E402
 from _reference import kalman_filter, make_linear_problem, naive_imm  # noqa: E402
 
 SEEDS = [0, 42, 99]
 LOG_FLOAT_MIN = np.log(sys.float_info.min)
-BACKEND_COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
-
-
-@pytest.fixture(autouse=True)
-def _x64():
-    previous = jax.config.jax_enable_x64
-    jax.config.update("jax_enable_x64", True)
-    yield
-    jax.config.update("jax_enable_x64", previous)
 
 
 def run_engine(problem, *, initial_mean=None, initial_cov=None):
@@ -86,22 +77,6 @@ def shared_dynamics(problem):
     out["A"] = np.repeat(problem["A"][:1], M, axis=0)
     out["B"] = np.repeat(problem["B"][:1], M, axis=0)
     return out
-
-
-@contextlib.contextmanager
-def count_backend_compiles():
-    """Collect the names of the XLA compilations that happen inside the block."""
-    names = []
-
-    def listener(event, duration, **kwargs):
-        if event == BACKEND_COMPILE_EVENT:
-            names.append(kwargs.get("fun_name", "?"))
-
-    jax.monitoring.register_event_duration_secs_listener(listener)
-    try:
-        yield names
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listener)
 
 
 # ---------------------------------------------------------------------------

@@ -9,11 +9,11 @@ import warnings
 import numpy as np
 import pytest
 
+from _engine_helpers import run_imm_filter
 from _reference import make_linear_problem, naive_imm
 from _robustness_helpers import CHUNK, short_scenario, write_short
 from uimm_jax import cli
 from uimm_jax.errors import UIMMWarning
-from uimm_jax.filtering import LinearGaussianBank, imm_filter
 from uimm_jax.imm import HEALTH_MISSING
 from uimm_jax.measured import (
     MeasuredData,
@@ -183,17 +183,7 @@ def test_other_file_errors(tmp_path, sc):
 
 
 def run_engine(problem, y):
-    bank = LinearGaussianBank(*(problem[k] for k in ("A", "B", "C", "Q", "R")))
-    return imm_filter(
-        bank,
-        problem["transition"],
-        problem["mu0"],
-        problem["x0"],
-        problem["P0"],
-        problem["inputs"],
-        y,
-        return_model_means=True,
-    )
+    return run_imm_filter(problem, y, return_model_means=True)
 
 
 @pytest.mark.parametrize("seed", [0, 1])

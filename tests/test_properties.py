@@ -11,9 +11,9 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from _engine_helpers import run_imm_filter
 from _reference import naive_imm
 from _robustness_helpers import CHUNK, all_finite, short_dict
-from uimm_jax.filtering import LinearGaussianBank, imm_filter
 from uimm_jax.runner import filter_measurements, setup_scenario, simulate_scenario
 from uimm_jax.scenarios import parse_scenario
 
@@ -84,23 +84,10 @@ def imm_problems(draw):
     }
 
 
-def engine(problem):
-    bank = LinearGaussianBank(*(problem[k] for k in ("A", "B", "C", "Q", "R")))
-    return imm_filter(
-        bank,
-        problem["transition"],
-        problem["mu0"],
-        problem["x0"],
-        problem["P0"],
-        problem["inputs"],
-        problem["measurements"],
-    )
-
-
 @SETTINGS
 @given(imm_problems())
 def test_imm_filter_invariants_and_reference(problem):
-    res = engine(problem)
+    res = run_imm_filter(problem)
     mu = np.asarray(res.mode_probs)
     assert np.all(np.isfinite(mu)) and np.all(mu >= 0)
     np.testing.assert_allclose(mu.sum(axis=1), 1.0, rtol=0, atol=1e-12)
@@ -112,7 +99,7 @@ def test_imm_filter_invariants_and_reference(problem):
     assert np.all(w >= -1e-10 * np.abs(w).max(axis=1, keepdims=True))
     assert np.isfinite(float(res.marginal_loglik))
     # Determinism: the same inputs give bit-identical outputs.
-    again = engine(problem)
+    again = run_imm_filter(problem)
     for field in ("mode_probs", "mean", "cov", "model_loglik", "health"):
         np.testing.assert_array_equal(getattr(res, field), getattr(again, field), err_msg=field)
     # And the engine is the IMM: it follows the plain NumPy reference.

@@ -30,14 +30,6 @@ ROOT = Path(__file__).resolve().parents[1]
 STEPS = 300
 
 
-@pytest.fixture(autouse=True)
-def _x64():
-    previous = jax.config.jax_enable_x64
-    jax.config.update("jax_enable_x64", True)
-    yield
-    jax.config.update("jax_enable_x64", previous)
-
-
 def paper_sim1():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
