@@ -168,7 +168,7 @@ def _cmd_tune(args) -> int:
             tuned_sc = load_scenario(out)
         record = json.loads(js.read_text()) if js.is_file() else {"scenario": str(args.scenario)}
     else:
-        tuned_sc, record = _train(args, sc, config, log)
+        tuned_sc, record = _train(args, sc, config, train_seed, log)
         # Written now (and again after the evaluation) so that a long evaluation that is
         # interrupted does not lose the training record.
         js.write_text(json.dumps(record, indent=2, default=_plain) + "\n")
@@ -229,14 +229,13 @@ def _reusable_before(path, eval_args: dict, log):
     return rec["evaluation"]["before"]
 
 
-def _train(args, sc, config, log):
+def _train(args, sc, config, train_seed, log):
     """Fit the settings, write the tuned scenario and its loss curve: ``(tuned, record)``."""
     import numpy as np
 
     from uimm_jax import plotting, tuning
     from uimm_jax.scenarios import dump_scenario, parse_scenario
 
-    train_seed = args.seed if args.seed is not None else int(sc.seed) + 1_000_003
     train_dur = float(args.train_duration or sc.duration)
     train_sc = tuning.rescale_scenario(sc, train_dur)
     cases = [tuning.scenario_case(train_sc)]
