@@ -108,7 +108,7 @@ def _stages(diag, params):
     return {
         "mixing (eqs. 15-17)": stage_mix,
         "prediction (eqs. 18-19, 22)": stage_predict,
-        "update (eqs. 20-27, Joseph form)": stage_update,
+        "update (eqs. 20-27)": stage_update,
         "IMM cycle (imm_step)": stage_imm,
         "diagnoser step (cond branch excluded)": stage_diag_nocond,
         "diagnoser step (as run)": stage_diag,

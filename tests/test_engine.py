@@ -341,6 +341,49 @@ def test_ekf_on_a_linear_model_equals_the_kalman_filter(seed):
     assert_ekf_equal(np.array(means), np.array(covs), np.array(lls), ref)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_update_covariance_equals_the_joseph_form_and_is_exactly_symmetric(seed):
+    # The engine updates with P - W W' (W = P H' L^-T) when S's Cholesky factor needed no
+    # repair; algebraically that is the Joseph form, computed here with NumPy.
+    rng = np.random.default_rng(seed)
+    n, m = 4, 3
+    G = rng.standard_normal((n, n))
+    P = G @ G.T + 0.1 * np.eye(n)
+    H = rng.standard_normal((m, n))
+    F = rng.standard_normal((m, m))
+    R = F @ F.T + 0.5 * np.eye(m)
+    x, y = rng.standard_normal(n), rng.standard_normal(m)
+    mean, cov, _ = kalman.ekf_update(x, P, y, lambda xx: jnp.asarray(H) @ xx, R)
+    cov = np.asarray(cov)
+    K = np.linalg.solve(H @ P @ H.T + R, H @ P).T
+    IKH = np.eye(n) - K @ H
+    np.testing.assert_allclose(cov, IKH @ P @ IKH.T + K @ R @ K.T, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(mean, x + K @ (y - H @ x), rtol=1e-10, atol=1e-12)
+    np.testing.assert_array_equal(cov, cov.T)
+
+
+def test_update_with_a_singular_innovation_covariance_falls_back_to_joseph():
+    # One state seen by two identical noise-free sensors: S is singular and a pivot is
+    # floored, so P - W W' is not the covariance of the gain actually used, and it comes
+    # out as +-rounding noise around 0 -- negative for some P.  The Joseph form (used when
+    # a pivot is repaired) gives (1 - K H)^2 P >= 0 exactly.
+    p = np.linspace(0.1, 7.3, 97)[None, None, :]  # 97 one-state filters, (1, 1, 97)
+    H = np.array([[1.0], [1.0]])
+    res = kalman.kf_update(
+        jnp.zeros((1, 97)),
+        jnp.asarray(p),
+        jnp.full((2, 97), 0.5),
+        jnp.zeros((2, 97)),
+        H,
+        jnp.zeros((2, 2, 1)),
+        float(np.finfo(np.float64).tiny) ** 0.5,
+    )
+    assert bool(np.all(res.repaired))
+    cov = np.asarray(res.cov)[0, 0]
+    assert np.all(cov >= 0.0)
+    assert np.all(cov <= 1e-9 * p[0, 0])
+
+
 def matrix_plant(n, p, m):
     """A discrete-time LinearPlant whose parameters are the entries of A, B and C."""
     names = (

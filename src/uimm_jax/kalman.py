@@ -5,11 +5,19 @@ arrays of the batch shape (runs..., models), so one call filters every model of 
 :func:`ekf_predict` and :func:`ekf_update` are the user-facing single-model versions on
 ordinary arrays, with Jacobians from ``jax.jacfwd``.
 
-Conventions: the update uses a Cholesky factor of the innovation covariance ``S`` for the
-gain, the log-determinant and the Mahalanobis term (never an explicit inverse), and the
-Joseph form ``P = (I - K H) P (I - K H)' + K R K'`` (eq. 26 written so it stays symmetric
-PSD).  A non-finite measurement channel is *missing*: its row of ``H`` and its innovation
-are zeroed and its variance set to one, which leaves the other channels' update exact and
+Conventions: the update uses a Cholesky factor ``L`` of the innovation covariance ``S``
+for the gain, the log-determinant and the Mahalanobis term (never an explicit inverse).
+With ``W = P H' L^-T`` the gain is ``K = W L^-1``, so ``K e = W (L^-1 e)`` and the
+covariance of eq. (26) is ``P - K S K' = P - W W'``: symmetric entry for entry, and about
+200 flops per filter cheaper than the Joseph form.  That identity holds only for the
+``S`` that was factorised; when a pivot of ``S`` had to be floored (``S`` numerically
+singular: duplicated or noise-free sensors) the factor belongs to a different matrix and
+``P - W W'`` can lose positive semi-definiteness, so every filter of the bank switches to
+the Joseph form ``P = (I - K H) P (I - K H)' + K R K'``, which is symmetric PSD for any
+gain -- under ``lax.cond``, so the steps that need no repair do not pay for it.
+
+A non-finite measurement channel is *missing*: its row of ``H`` and its innovation are
+zeroed and its variance set to one, which leaves the other channels' update exact and
 contributes nothing to the log-likelihood.
 """
 
@@ -87,29 +95,39 @@ def kf_update(
     S, PHt, e = sm.materialize((S, PHt, e))
     L, inv_diag, repaired = sm.chol([[S[c, d] for d in range(m)] for c in range(m)], floor)
     L, inv_diag = sm.materialize((L, inv_diag))
-    # Rows of K = P H' S^-1: forward then back substitution, vectorised over the n rows.
-    z = []
+    # Columns of W = P H' L^-T: forward substitution, vectorised over the n rows.
+    w = []
     for c in range(m):
         acc = PHt[:, c]
         for k in range(c):
-            acc = acc - z[k] * L[c][k]
-        z.append(acc * inv_diag[c])
-    kcols = [None] * m
-    for c in reversed(range(m)):
-        acc = z[c]
-        for k in range(c + 1, m):
-            acc = acc - kcols[k] * L[k][c]
-        kcols[c] = acc * inv_diag[c]
-    K = sm.materialize(jnp.stack(kcols, axis=1))  # (n, m, *batch)
-    v = sm.chol_solve_vec(L, [e[c] for c in range(m)], inv_diag)
+            acc = acc - w[k] * L[c][k]
+        w.append(acc * inv_diag[c])
+    w = sm.materialize(w)
+    v = sm.chol_solve_vec(L, [e[c] for c in range(m)], inv_diag)  # L^-1 e
     nis = sm.dot(v, v)
     logdet = sm.chol_logdet(L)
     num_obs = jnp.sum(valid.astype(jnp.int32), axis=0)
     loglik = -0.5 * (nis + logdet) - (0.5 * LOG_2PI) * num_obs.astype(nis.dtype)
-    x_new = x + wd.mv(K, e)
-    eye_n = jnp.eye(n, dtype=x.dtype).reshape((n, n) + (1,) * (x.ndim - 1))
-    IKH = sm.materialize(eye_n - wd.mm(K, H))
-    P_new = wd.sym(wd.mm(wd.mm(IKH, P), wd.tr(IKH)) + wd.mm(wd.mm(K, R), wd.tr(K)))
+    x_new = x + sum(w[c] * v[c] for c in range(m))
+
+    def standard(_):
+        # P - K S K' = P - W W' (each outer product is exactly symmetric).
+        return P - sum(w[c][:, None] * w[c][None, :] for c in range(m))
+
+    def joseph(_):
+        # K = W L^-1 (back substitution), then (I - K H) P (I - K H)' + K R K'.
+        kcols = [None] * m
+        for c in reversed(range(m)):
+            acc = w[c]
+            for k in range(c + 1, m):
+                acc = acc - kcols[k] * L[k][c]
+            kcols[c] = acc * inv_diag[c]
+        K = sm.materialize(jnp.stack(kcols, axis=1))  # (n, m, *batch)
+        eye_n = jnp.eye(n, dtype=x.dtype).reshape((n, n) + (1,) * (x.ndim - 1))
+        IKH = sm.materialize(eye_n - wd.mm(K, H))
+        return wd.sym(wd.mm(wd.mm(IKH, P), wd.tr(IKH)) + wd.mm(wd.mm(K, R), wd.tr(K)))
+
+    P_new = jax.lax.cond(jnp.any(repaired), joseph, standard, None)
     return UpdateResult(x_new, P_new, loglik, nis, repaired, num_obs)
 
 
@@ -146,7 +164,7 @@ def ekf_update(mean, cov, y, h, R):
         R: ``(m, m)`` measurement noise covariance.
 
     Returns:
-        ``(mean, cov, loglik)`` with the Joseph-form covariance.
+        ``(mean, cov, loglik)`` (covariance as described in the module docstring).
     """
     mean = jnp.asarray(mean)
     H = jax.jacfwd(h)(mean)
