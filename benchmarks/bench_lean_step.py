@@ -125,7 +125,7 @@ def _time(loops, us, ys, repeat):
 
 def main(argv=None) -> int:
     args = anatomy.parse_loop_args(argv, __doc__, "interleaved repeats")
-    diag, params = anatomy.load_bank()
+    diag, params, data = anatomy.load_bank()
     M = diag.num_models
     cache = diag.prepare(jnp.zeros((diag.num_faults,), bool), jnp.float64)
     A, Bu = np.asarray(cache.A), np.asarray(cache.B)[:, 0]
@@ -142,12 +142,10 @@ def main(argv=None) -> int:
     print()
     print("| step | runs | us/run-step (min) | us/run-step (median) | flops/filter (normal step) |")
     print("|---|---:|---:|---:|---:|")
-    rng = np.random.default_rng(0)
     for B in (1, args.batch):
         st, runs = anatomy._state(diag, B)
         N = args.steps
-        ys = jnp.asarray(1e-3 * rng.standard_normal((N, 3, *runs)))
-        us = jnp.asarray(1e-2 * rng.standard_normal((N, 1, *runs)))
+        us, ys = data(N, runs)
         mean, cov = st.imm.mean, st.imm.cov
         lean0 = (
             [mean[a] for a in range(3)],

@@ -384,6 +384,25 @@ def test_update_with_a_singular_innovation_covariance_falls_back_to_joseph():
     assert np.all(cov <= 1e-9 * p[0, 0])
 
 
+def test_update_keeps_relative_accuracy_when_a_precise_sensor_meets_a_vague_prior():
+    # The actuator's first step: prior variance ~0.1, sensor variance 1e-12.  P - W W'
+    # would leave 1e-12 as the difference of two numbers of size 0.1 (relative error
+    # ~1e-5); the engine then switches to the Joseph form, accurate to rounding.
+    p = np.geomspace(1e-3, 10.0, 41)[None, None, :]
+    r = 1e-12
+    res = kalman.kf_update(
+        jnp.zeros((1, 41)),
+        jnp.asarray(p),
+        jnp.full((1, 41), 0.5),
+        jnp.zeros((1, 41)),
+        np.eye(1),
+        jnp.full((1, 1, 1), r),
+        float(np.finfo(np.float64).tiny) ** 0.5,
+    )
+    assert not np.any(res.repaired)
+    np.testing.assert_allclose(np.asarray(res.cov)[0, 0], p[0, 0] * r / (p[0, 0] + r), rtol=1e-12)
+
+
 def matrix_plant(n, p, m):
     """A discrete-time LinearPlant whose parameters are the entries of A, B and C."""
     names = (

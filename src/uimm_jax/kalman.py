@@ -9,12 +9,19 @@ Conventions: the update uses a Cholesky factor ``L`` of the innovation covarianc
 for the gain, the log-determinant and the Mahalanobis term (never an explicit inverse).
 With ``W = P H' L^-T`` the gain is ``K = W L^-1``, so ``K e = W (L^-1 e)`` and the
 covariance of eq. (26) is ``P - K S K' = P - W W'``: symmetric entry for entry, and about
-200 flops per filter cheaper than the Joseph form.  That identity holds only for the
-``S`` that was factorised; when a pivot of ``S`` had to be floored (``S`` numerically
-singular: duplicated or noise-free sensors) the factor belongs to a different matrix and
-``P - W W'`` can lose positive semi-definiteness, so every filter of the bank switches to
-the Joseph form ``P = (I - K H) P (I - K H)' + K R K'``, which is symmetric PSD for any
-gain -- under ``lax.cond``, so the steps that need no repair do not pay for it.
+200 flops per filter cheaper than the Joseph form.  It has two weaknesses, and on a step
+where either bites, every filter of the bank uses the Joseph form
+``P = (I - K H) P (I - K H)' + K R K'`` instead (symmetric PSD for any gain, and
+accurate), under ``lax.cond`` so that the other steps do not pay for it:
+
+* the identity holds only for the ``S`` that was factorised: when a pivot of ``S`` had
+  to be floored (``S`` numerically singular: duplicated or noise-free sensors) ``P - W W'``
+  can lose positive semi-definiteness;
+* the subtraction cancels when the update removes nearly all of a variance (a precise
+  sensor against a vague prior: the actuator's first steps, R = 1e-12 against
+  P0 = 0.1 I, leave ~1e-11 of the prior, with a relative error of ~1e-6 in ``P - W W'``).
+  The Joseph form is used whenever a posterior variance falls below
+  :data:`CANCELLATION_RATIO` of its prior (or is negative or NaN).
 
 A non-finite measurement channel is *missing*: its row of ``H`` and its innovation are
 zeroed and its variance set to one, which leaves the other channels' update exact and
@@ -35,6 +42,10 @@ from uimm_jax import _wide as wd
 __all__ = ["UpdateResult", "ekf_predict", "ekf_update", "kf_predict_cov", "kf_update"]
 
 LOG_2PI = math.log(2.0 * math.pi)
+
+# The update uses P - W W' only while every posterior variance keeps at least this
+# fraction of its prior (else the subtraction cancels: see the module docstring).
+CANCELLATION_RATIO = 1e-2
 
 
 class UpdateResult(NamedTuple):
@@ -102,7 +113,14 @@ def kf_update(
         for k in range(c):
             acc = acc - w[k] * L[c][k]
         w.append(acc * inv_diag[c])
-    w = sm.materialize(w)
+    # P - W W' has a rounding error of ~eps * P_ii on entries of size P_new_ii: fine unless
+    # the update removes nearly all of a variance (a precise sensor against a vague prior,
+    # as in the actuator's first steps) or S needed repair; then the Joseph form is used.
+    # ``margin`` (>= 0 where P - W W' is accurate) is materialised with W: one kernel.
+    prior = jnp.stack([P[i, i] for i in range(n)])
+    margin = (1.0 - CANCELLATION_RATIO) * prior - sum(w[c] * w[c] for c in range(m))
+    w, margin = sm.materialize((w, margin))
+    accurate = jnp.all(margin >= 0.0)  # False for NaN too
     v = sm.chol_solve_vec(L, [e[c] for c in range(m)], inv_diag)  # L^-1 e
     nis = sm.dot(v, v)
     logdet = sm.chol_logdet(L)
@@ -127,7 +145,7 @@ def kf_update(
         IKH = sm.materialize(eye_n - wd.mm(K, H))
         return wd.sym(wd.mm(wd.mm(IKH, P), wd.tr(IKH)) + wd.mm(wd.mm(K, R), wd.tr(K)))
 
-    P_new = jax.lax.cond(jnp.any(repaired), joseph, standard, None)
+    P_new = jax.lax.cond(jnp.any(repaired) | ~accurate, joseph, standard, None)
     return UpdateResult(x_new, P_new, loglik, nis, repaired, num_obs)
 
 
