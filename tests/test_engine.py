@@ -343,8 +343,8 @@ def test_ekf_on_a_linear_model_equals_the_kalman_filter(seed):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_update_covariance_equals_the_joseph_form_and_is_exactly_symmetric(seed):
-    # The engine updates with P - W W' (W = P H' L^-T) when S's Cholesky factor needed no
-    # repair; algebraically that is the Joseph form, computed here with NumPy.
+    # On a regular update the engine computes P - W W' (W = P H' L^-T); algebraically that
+    # is the Joseph form, computed here with NumPy.
     rng = np.random.default_rng(seed)
     n, m = 4, 3
     G = rng.standard_normal((n, n))
@@ -386,8 +386,8 @@ def test_update_with_a_singular_innovation_covariance_falls_back_to_joseph():
 
 def test_update_keeps_relative_accuracy_when_a_precise_sensor_meets_a_vague_prior():
     # The actuator's first step: prior variance ~0.1, sensor variance 1e-12.  P - W W'
-    # would leave 1e-12 as the difference of two numbers of size 0.1 (relative error
-    # ~1e-5); the engine then switches to the Joseph form, accurate to rounding.
+    # would leave 1e-12 as the difference of two numbers of size 0.1 (1.5e-3 relative
+    # error, measured); the engine then switches to the Joseph form, accurate to rounding.
     p = np.geomspace(1e-3, 10.0, 41)[None, None, :]
     r = 1e-12
     res = kalman.kf_update(
