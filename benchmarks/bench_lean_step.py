@@ -107,12 +107,7 @@ def lean_step(A, Bu, q, r, log_trans):
 def _time(loops, us, ys, repeat):
     compiled = {}
     for name, (step, s0) in loops.items():
-
-        def chunk(s, us, ys, step=step):
-            return jax.lax.scan(lambda c, uy: (step(c, uy[0], uy[1]), None), s, (us, ys))[0]
-
-        f = jax.jit(chunk).lower(s0, us, ys).compile()
-        jax.block_until_ready(f(s0, us, ys))
+        f = anatomy.compile_loop(step, s0, us, ys)
         compiled[name] = (f, s0, anatomy._cost(step, s0, us[0], ys[0])[1])
     times = {k: [] for k in compiled}
     for _ in range(repeat):

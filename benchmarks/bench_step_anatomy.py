@@ -11,9 +11,10 @@ change to the kernel can be judged against the same yardstick.  For the actuator
    its decision rule -- for one run and for a batch of runs; the time per step (minimum
    over repeats: this machine's timings are noisy, the minimum is the reproducible
    figure) and XLA's own count of the arithmetic of one step (``cost_analysis``: flops,
-   transcendentals) per filter.  The diagnoser's ``lax.cond`` branch (re-discretisation
-   on a declaration) is compiled but almost never taken, so its arithmetic is reported
-   apart: the stage "diagnoser step (cond branch excluded)" is the diagnoser without it.
+   transcendentals) per filter, as compiled and on a normal step: ``cost_analysis``
+   counts both branches of every ``lax.cond`` (the declaration hand-over, the update's
+   Joseph fallback), which a normal step does not take.  The stage "diagnoser step (cond
+   branch excluded)" also *times* the diagnoser without its declaration branch.
 2. **Kernels**: how many fusions the optimised loop body of the full step holds.
 3. **The cost of a kernel**: a loop whose body is K tiny fusions on a ``(3, 3, 4)`` block
    (the size of one covariance bank), to price the per-fusion overhead.
@@ -120,7 +121,9 @@ def _state(diag, B):
     return diag.init(np.zeros(3), 0.1 * np.eye(3), [0.97, 0.01, 0.01, 0.01], runs=runs), runs
 
 
-def _time_scan(step, st, us, ys, repeat):
+def compile_loop(step, st, us, ys):
+    """``lax.scan`` of ``step(state, u, y) -> state`` over ``(us, ys)``, compiled and warmed."""
+
     def chunk(st, us, ys):
         def body(s, uy):
             return step(s, uy[0], uy[1]), None
@@ -129,6 +132,11 @@ def _time_scan(step, st, us, ys, repeat):
 
     f = jax.jit(chunk).lower(st, us, ys).compile()
     jax.block_until_ready(f(st, us, ys))
+    return f
+
+
+def _time_scan(step, st, us, ys, repeat):
+    f = compile_loop(step, st, us, ys)
     ts = []
     for _ in range(repeat):
         t = time.perf_counter()

@@ -19,7 +19,8 @@ accurate), under ``lax.cond`` so that the other steps do not pay for it:
   can lose positive semi-definiteness;
 * the subtraction cancels when the update removes nearly all of a variance (a precise
   sensor against a vague prior: the actuator's first steps, R = 1e-12 against
-  P0 = 0.1 I, leave ~1e-11 of the prior, with a relative error of ~1e-6 in ``P - W W'``).
+  P0 = 0.1 I, leave ~1e-11 of the prior; ``P - W W'`` then has a relative error of
+  ~1e-3, measured).
   The Joseph form is used whenever a posterior variance falls below
   :data:`CANCELLATION_RATIO` of its prior (or is negative or NaN).
 
