@@ -154,7 +154,9 @@ def test_spec_defaults_from_scenario():
         ({"magnitudes": [1.0, -0.5]}, "[sweep].magnitudes[1]", "> 0"),
         ({"noise_scales": []}, "[sweep].noise_scales", "non-empty"),
         ({"fault_free": "yes"}, "[sweep].fault_free", "true or false"),
-        ({"seed": -1}, "[sweep].seed", ">= 0"),
+        ({"seed": -1}, "[sweep].seed", "in [0, 4294967295], got -1"),
+        ({"seed": 2**32}, "[sweep].seed", "in [0, 4294967295], got 4294967296"),
+        ({"magnitudes": [1.0, 3.0]}, "[sweep].magnitudes", "Eh must stay > 0"),
         ({"batch": 0}, "[sweep].batch", ">= 1"),
         ({"cases": {"a": 1}}, "[sweep].cases", "array of tables"),
         (

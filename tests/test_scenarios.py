@@ -435,8 +435,9 @@ MALFORMED = {
     "bad_duration_zero.toml": ("^duration$", "must be in \\(0\\.0, inf\\)"),
     "bad_duration_string.toml": ("^duration$", "must be a number.*got a string"),
     "bad_duration_nan.toml": ("^duration$", "must be a finite number"),
-    "bad_seed_negative.toml": ("^seed$", "integer >= 0, got -1"),
-    "bad_seed_float.toml": ("^seed$", "must be an integer >= 0, got a float"),
+    "bad_seed_negative.toml": ("^seed$", "integer in \\[0, 4294967295\\], got -1"),
+    "bad_seed_float.toml": ("^seed$", "must be an integer in \\[0, 4294967295\\], got a float"),
+    "bad_seed_too_large.toml": ("^seed$", "in \\[0, 4294967295\\], got 4294967296"),
     "bad_name_empty.toml": ("^name$", "non-empty string"),
     "bad_plant_not_table.toml": ("^\\[plant\\]$", "must be a table, got a string"),
     "bad_plant_model_unknown.toml": (
@@ -580,13 +581,32 @@ MALFORMED = {
         "\\[filter\\.decision\\]\\.threshold",
         "must be in \\(0\\.0, 1\\.0\\]",
     ),
-    "bad_hold_zero.toml": ("\\[filter\\.decision\\]\\.hold", "integer >= 1, got 0"),
+    "bad_hold_zero.toml": (
+        "\\[filter\\.decision\\]\\.hold",
+        "integer in \\[1, 2147483647\\], got 0",
+    ),
+    "bad_hold_too_large.toml": ("\\[filter\\.decision\\]\\.hold", "got 2147483648"),
     "bad_hold_float.toml": (
         "\\[filter\\.decision\\]\\.hold",
-        "must be an integer >= 1, got a float",
+        "must be an integer in \\[1, 2147483647\\], got a float",
     ),
     "bad_decision_not_table.toml": ("\\[filter\\.decision\\]", "must be a table, got a float"),
     "bad_sweep_not_table.toml": ("\\[sweep\\]", "must be a table, got an integer"),
+    "bad_duration_too_many_samples.toml": ("^duration$", "at most 2147483647"),
+    "bad_event_after_last_sample.toml": (
+        "\\[\\[events\\]\\]\\[0\\]\\.time",
+        "sample round\\(time / dt\\) = 1000.*samples are 0\\.\\.999.*never occur",
+    ),
+    "bad_plant_param_not_positive.toml": ("\\[plant\\.params\\]\\.mh", "mh must be > 0.*got 0\\.0"),
+    "bad_fault_value_not_positive.toml": ("\\[faults\\.air_in_oil\\]\\.Eh", "Eh must be > 0"),
+    "bad_event_magnitude_param_not_positive.toml": (
+        "\\[\\[events\\]\\]\\[0\\]\\.magnitude",
+        "takes Eh from 6000000\\.0 to -4800000\\.0.*must stay > 0",
+    ),
+    "bad_initial_mode_probs_overflow.toml": (
+        "\\[filter\\]\\.initial_mode_probs",
+        "sum to inf \\(overflow\\)",
+    ),
 }
 
 

@@ -117,12 +117,11 @@ def _print_summary(s: dict) -> None:
 def _cmd_run(args) -> int:
     from uimm_jax.runner import run_scenario
     from uimm_jax.scenarios import load_scenario
+    from uimm_jax.validation import check_out_dir, check_seed
 
-    if Path(args.out).exists() and not Path(args.out).is_dir():
-        raise ValueError(f"--out: {args.out!r} is a file; give a directory (created if missing)")
-    if args.seed is not None and args.seed < 0:
-        raise ValueError(f"--seed: expected an integer >= 0, got {args.seed}")
+    check_seed(args.seed, "--seed")
     sc = load_scenario(args.scenario)
+    check_out_dir(args.out)
     method = args.method or sc.filter.method
     if args.float32:  # scaled float32 diagnoser (uimm_jax.scaling, docs/robustness.md)
         from uimm_jax.scaling import run_scenario_float32 as run_scenario
@@ -131,10 +130,12 @@ def _cmd_run(args) -> int:
         from uimm_jax.measured import load_measurements
 
         measurements = load_measurements(args.measurements, sc)
-    print(
-        f"running {sc.name} from {args.scenario} with {method.upper()} ({sc.num_steps} steps)",
-        file=sys.stderr,
-    )
+    steps = sc.num_steps if measurements is None else measurements.num_steps
+    if not args.quiet:
+        print(
+            f"running {sc.name} from {args.scenario} with {method.upper()} ({steps} steps)",
+            file=sys.stderr,
+        )
     t0 = time.perf_counter()
     result = run_scenario(
         sc, method, args.seed, progress=_Progress(not args.quiet), measurements=measurements

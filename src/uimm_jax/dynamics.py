@@ -88,6 +88,21 @@ def zoh(A: list, B: list, dt: float, *, balance=None, squarings: int = 0) -> tup
     return [row[:n] for row in E[:n]], [row[n:] for row in E[:n]]
 
 
+# Largest number of squarings of the matrix exponential (|A dt| up to ~2^MAX/4): each is
+# unrolled into the compiled step, and a larger count only comes from absurd parameters.
+MAX_SQUARINGS = 64
+
+
+def _changed(plant, theta) -> str:
+    """``name = value`` of the parameters that differ from the plant's nominal values."""
+    diff = [
+        f"{k} = {float(v)!r}"
+        for k, v, v0 in zip(plant.param_names, theta, plant.nominal_values, strict=True)
+        if float(v) != float(v0)
+    ]
+    return ", ".join(diff) if diff else "nominal"
+
+
 def _zoh_settings(mats: list[np.ndarray], dt: float) -> tuple[np.ndarray, int]:
     """Balancing and number of squarings that suit every given augmented matrix."""
     d = sm.balance_diagonal(sum(np.abs(m) for m in mats) * dt)
@@ -118,6 +133,13 @@ class LinearDynamics:
         self.dt = float(dt)
         refs = np.atleast_2d(np.asarray(reference_thetas, dtype=np.float64))
         mats = [self._single(np.asarray(t)) for t in refs]
+        for t, mat in zip(refs, mats, strict=True):
+            if not all(np.all(np.isfinite(np.asarray(a))) for a in mat):
+                raise ValueError(
+                    f"plant {plant.name!r}: its matrices (A, B, C, d) have a non-finite entry "
+                    f"for the parameters {_changed(plant, t)}; check [plant.params] and the "
+                    "fault values (a zero mass or volume divides by zero)."
+                )
         n = plant.state_dim
         p = plant.input_dim
         self.n, self.p, self.m = n, p, plant.output_dim
@@ -132,6 +154,15 @@ class LinearDynamics:
                 aug[:n, n:] = B
                 augs.append(aug)
             self.balance, self.squarings = _zoh_settings(augs, self.dt)
+            if self.squarings > MAX_SQUARINGS:
+                params = "; ".join(_changed(plant, t) for t in refs)
+                raise ValueError(
+                    f"plant {plant.name!r}: |A dt| ~ 2^{self.squarings} at dt = {self.dt!r} s "
+                    f"for the parameters of this bank ({params}): "
+                    "the dynamics are far too fast to sample (the zero-order hold would need "
+                    f"{self.squarings} matrix squarings, at most {MAX_SQUARINGS} are allowed); "
+                    "check the parameter values or use a smaller dt."
+                )
         else:
             self.balance, self.squarings = None, 0
 

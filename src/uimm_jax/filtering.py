@@ -30,7 +30,7 @@ from uimm_jax.validation import (
     check_bank,
     check_covariance,
     check_gate,
-    check_no_inf,
+    check_measurements,
     check_probabilities,
     check_shape,
     check_stochastic,
@@ -166,13 +166,18 @@ def imm_filter(
     if A.ndim != 3 or A.shape[1] != A.shape[2]:
         raise ValueError(f"bank.A: expected shape (M, n, n), got {A.shape}")
     M, n, _ = A.shape
+    if M == 0 or n == 0:
+        raise ValueError(
+            f"bank.A: shape {A.shape} has no {'models' if M == 0 else 'states'}; a bank "
+            "needs at least one model with at least one state"
+        )
     C = as_float_array(bank.C, "bank.C")
     if C.ndim != 3 or C.shape[0] != M or C.shape[2] != n:
         raise ValueError(f"bank.C: expected shape ({M}, m, {n}), got {C.shape}")
     m = C.shape[1]
-    y = as_float_array(measurements, "measurements")
-    check_shape(y, (None, m), "measurements", f"one row of {m} measured channels per step")
-    check_no_inf(y, "measurements")
+    if m == 0:
+        raise ValueError(f"bank.C: shape {C.shape} has no output; give at least one row")
+    y = check_measurements(measurements, m)
     N = y.shape[0]
     if bank.B is None:
         B = np.zeros((M, n, 0))

@@ -109,6 +109,8 @@ HYDRAULIC_ACTUATOR = register_plant(
         nominal_values=tuple(_PARAMS.values()),
         faults=PAPER_FAULTS,
         extra_faults=EXTRA_FAULTS,
+        # divisors and gains of eq. (2); Kc, Cl, Bh, Kh and the biases may be zero
+        positive_params=("mh", "Ah", "Vh", "Eh", "Kv", "Kq"),
         time="continuous",
         description="Aviation hydraulic actuator, Sun, Wang & Lin (2020) eq. (2), Table 1",
         matrices=_matrices,

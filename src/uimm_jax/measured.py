@@ -229,7 +229,7 @@ def _check_times(t: np.ndarray, dt: float, source: str, lines: list[int] | None 
                 "at (k + 1) dt -- add dt to the column, or drop it)"
             )
         raise MeasurementError(
-            f"t = {t[k]!r} but sample {k} must be at (k + 1) dt = {expected[k]!r} s "
+            f"t = {float(t[k])!r} but sample {k} must be at (k + 1) dt = {float(expected[k])!r} s "
             f"(dt = {dt!r} s from the scenario, tolerance {TIME_TOLERANCE:g} dt){hint}; "
             "the samples must be uniformly spaced by the scenario's dt",
             source=source,

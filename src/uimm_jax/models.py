@@ -69,6 +69,9 @@ class _PlantBase:
     time: Literal["continuous", "discrete"] = "continuous"
     description: str = ""
     extra_faults: tuple[Fault, ...] = ()
+    # Parameters that are physically > 0 (masses, areas, volumes, moduli): scenario files
+    # and fault magnitudes that would make one of them <= 0 are refused.
+    positive_params: tuple[str, ...] = ()
 
     def __post_init__(self):
         from uimm_jax.validation import check_plant_structure
@@ -86,7 +89,25 @@ class _PlantBase:
             raise ValueError(
                 f"plant {self.name!r}: time must be 'continuous' or 'discrete', got {self.time!r}"
             )
+        nominal = dict(zip(self.param_names, self.nominal_values, strict=True))
+        for p in self.positive_params:
+            if p not in nominal:
+                raise ValueError(
+                    f"plant {self.name!r}: positive_params names unknown parameter {p!r}; "
+                    f"known parameters: {', '.join(self.param_names)}"
+                )
+            if not float(nominal[p]) > 0:
+                raise ValueError(
+                    f"plant {self.name!r}: {p} is in positive_params but its nominal value "
+                    f"is {nominal[p]!r}"
+                )
         for fault in self.faults + self.extra_faults:
+            for p, v in fault.values.items():
+                if p in self.positive_params and not float(v) > 0:
+                    raise ValueError(
+                        f"plant {self.name!r}: fault {fault.name!r} sets {p} = {v!r}, but {p} "
+                        "is in positive_params (must be > 0)"
+                    )
             for p in fault.values:
                 if p not in self.param_names:
                     raise ValueError(

@@ -83,6 +83,7 @@ import numpy as np
 from uimm_jax.errors import ScenarioError
 from uimm_jax.filtering import scan_chunked
 from uimm_jax.simulate import TruthPlan, input_value, noise_factor, truth_step
+from uimm_jax.validation import MAX_SEED
 
 __all__ = [
     "CaseSpec",
@@ -223,11 +224,12 @@ class _Check:
     def fail(self, field: str, detail: str):
         raise ScenarioError(detail, source=self.source, field=field)
 
-    def integer(self, value: Any, field: str, low: int) -> int:
+    def integer(self, value: Any, field: str, low: int, high: int | None = None) -> int:
+        rng = f">= {low}" if high is None else f"in [{low}, {high}]"
         if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-            self.fail(field, f"must be an integer >= {low}, got {type(value).__name__}.")
-        if int(value) < low:
-            self.fail(field, f"must be an integer >= {low}, got {int(value)}.")
+            self.fail(field, f"must be an integer {rng}, got {type(value).__name__}.")
+        if int(value) < low or (high is not None and int(value) > high):
+            self.fail(field, f"must be an integer {rng}, got {int(value)}.")
         return int(value)
 
     def number(self, value: Any, field: str, *, positive: bool = False) -> float:
@@ -386,7 +388,7 @@ def sweep_spec(
     v, f = pick("runs", runs)
     runs_ = 100 if v is None else chk.integer(v, f, 1)
     v, f = pick("seed", seed)
-    seed_ = int(scenario.seed) if v is None else chk.integer(v, f, 0)
+    seed_ = int(scenario.seed) if v is None else chk.integer(v, f, 0, MAX_SEED)
     v, f = pick("methods", methods)
     if v is None:
         methods_ = (scenario.filter.method,)
@@ -422,7 +424,29 @@ def sweep_spec(
         cases_ = _parse_cases(chk, v, scenario)
     if not cases_ and not ff:
         chk.fail("[sweep].cases", "no fault case and fault_free = false: nothing to run.")
+    _check_positive_params(chk, scenario, cases_, mags, pick("magnitudes", magnitudes)[1])
     return SweepSpec(runs_, seed_, methods_, mags, noises, ff, cases_, batch_, chunk_)
+
+
+def _check_positive_params(chk, scenario, cases, mags, field: str) -> None:
+    """Refuse magnitudes that would take a physically positive parameter to <= 0."""
+    from uimm_jax.scenarios import nonpositive_param
+
+    nominal = scenario.nominal_params
+    for case in cases:
+        for e in case.events:
+            for mag in mags:
+                bad = nonpositive_param(
+                    scenario.plant, nominal, scenario.faults[e.fault], mag * e.magnitude
+                )
+                if bad:
+                    key, value = bad
+                    chk.fail(
+                        field,
+                        f"magnitude {mag!r} x {e.magnitude!r} of fault {e.fault!r} (case "
+                        f"{case.name!r}) takes {key} from {nominal[key]!r} to {value!r}, but "
+                        f"{key} must stay > 0.",
+                    )
 
 
 def _cells(spec: SweepSpec) -> list[Cell]:

@@ -218,6 +218,11 @@ def plot_mode_probabilities(
     for j, label in enumerate(model_labels):
         ax.plot(td, pd[:, j], color=colour[label], lw=1.1, label=str(label))
 
+    # Markers far outside the data (a short measured file against the scenario's onsets)
+    # would stretch the axis, or overflow the text rasteriser: draw only those in range.
+    end = float(t[-1]) if len(t) else 0.0
+    events = [(time, name) for time, name in events if time <= end]
+    declarations = [(time, name) for time, name in declarations if time <= end]
     for time, name in events:
         ax.axvline(time, color=colour.get(name, "k"), ls="--", lw=1.2, alpha=0.9)
         ax.annotate(

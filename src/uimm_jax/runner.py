@@ -279,6 +279,15 @@ def simulate_scenario(
     )
     _, (u, x, y, code) = scan_chunked(run, x0, sc.num_steps, chunk=chunk, progress=progress)
     t = (np.arange(sc.num_steps) + 1) * sc.dt
+    bad = ~(np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(y), axis=1))
+    if bad.any():
+        # A diverged truth would reach the filter as NaN measurements, i.e. "missing".
+        k = int(np.argmax(bad))
+        raise ValueError(
+            f"{sc.source}: the simulated truth is not finite from t = {t[k]:g} s (sample {k}): "
+            "the plant diverges with these parameters; check [plant.params], the fault "
+            "values and [[events]].magnitude."
+        )
     return {"u": u, "x": x, "y": y, "truth": code, "t": t}
 
 

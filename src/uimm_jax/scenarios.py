@@ -41,6 +41,7 @@ import numpy as np
 
 from uimm_jax.errors import ScenarioError, UIMMWarning
 from uimm_jax.models import Plant, get_plant, list_plants
+from uimm_jax.validation import MAX_INT32, MAX_SEED
 
 __all__ = [
     "DecisionSpec",
@@ -356,6 +357,11 @@ def load_scenario(path: str | os.PathLike[str]) -> Scenario:
     Raises:
         ScenarioError: the file is missing, is not valid TOML, or breaks the schema.
     """
+    if not isinstance(path, str | os.PathLike):
+        raise TypeError(
+            f"load_scenario: path: expected the path of a .toml scenario file (str or "
+            f"pathlib.Path), got {type(path).__name__} {path!r}"
+        )
     path = Path(path)
     source = str(path)
     try:
@@ -376,7 +382,7 @@ def load_scenario(path: str | os.PathLike[str]) -> Scenario:
             "is a directory; give the path of a .toml scenario file", source=source
         ) from None
     try:
-        data = tomllib.loads(raw.decode("utf-8"))
+        data = tomllib.loads(raw.decode("utf-8-sig"))  # a byte-order mark is tolerated
     except UnicodeDecodeError as exc:
         raise ScenarioError(f"the file is not UTF-8 text ({exc})", source=source) from None
     except tomllib.TOMLDecodeError as exc:
@@ -387,6 +393,21 @@ def load_scenario(path: str | os.PathLike[str]) -> Scenario:
     for note in notes:
         warnings.warn(note, UIMMWarning, stacklevel=2)
     return scenario
+
+
+def nonpositive_param(
+    plant: Plant, nominal: Mapping[str, float], values: Mapping[str, float], magnitude: float
+) -> tuple[str, float] | None:
+    """The first of the plant's ``positive_params`` that a fault event takes to ``<= 0``.
+
+    At magnitude ``a`` a parameter of the fault takes ``nominal + a (fault_value - nominal)``
+    in the truth.  Returns ``(name, value)``, or ``None`` if every one stays positive.
+    """
+    for key, fv in values.items():
+        value = nominal[key] + magnitude * (fv - nominal[key])
+        if key in plant.positive_params and not value > 0:
+            return key, value
+    return None
 
 
 def parse_scenario(data: Mapping[str, Any], source: str = "<dict>") -> Scenario:
@@ -592,11 +613,12 @@ class _Parser:
             self.fail(field, f"must be in {interval}{unit_txt}, got {x!r}.")
         return x
 
-    def integer(self, value: Any, field: str, *, low: int) -> int:
+    def integer(self, value: Any, field: str, *, low: int, high: int | None = None) -> int:
+        rng = f">= {low}" if high is None else f"in [{low}, {high}]"
         if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-            self.fail(field, f"must be an integer >= {low}, got {_type_name(value)}.")
-        if int(value) < low:
-            self.fail(field, f"must be an integer >= {low}, got {int(value)}.")
+            self.fail(field, f"must be an integer {rng}, got {_type_name(value)}.")
+        if int(value) < low or (high is not None and int(value) > high):
+            self.fail(field, f"must be an integer {rng}, got {int(value)}.")
         return int(value)
 
     def string(self, value: Any, field: str) -> str:
@@ -735,15 +757,23 @@ class _Parser:
                 f"duration / dt = {duration!r} / {dt!r} = {ratio!r} is not an integer number "
                 "of samples; choose dt so that it divides duration.",
             )
-        seed = self.integer(top.get("seed", 0), "seed", low=0)
+        if round(ratio) > MAX_INT32:
+            self.fail(
+                "duration",
+                f"duration / dt = {ratio:.4g} samples; a run holds at most {MAX_INT32} "
+                "(the step counter is int32, and every sample's outputs are kept): shorten "
+                "duration or lengthen dt.",
+            )
+        seed = self.integer(top.get("seed", 0), "seed", low=0, high=MAX_SEED)
 
         plant, plant_params = self.parse_plant(top["plant"])
         nominal = {k: float(v) for k, v in plant.nominal.items()}
         nominal.update(plant_params)
         input_spec = self.parse_input(top["input"])
+        self.check_input_timing(input_spec, duration, dt)
         process, measurement = self.parse_noise(top["noise"], plant)
         faults = self.parse_faults(top.get("faults"), plant, nominal)
-        events = self.parse_events(top.get("events"), faults, duration, plant)
+        events = self.parse_events(top.get("events"), faults, duration, dt, plant, nominal)
         filter_spec = self.parse_filter(top["filter"], plant, len(faults))
         sweep = None
         if "sweep" in top:
@@ -802,8 +832,18 @@ class _Parser:
             for key, v in ptable.items():
                 field = self.path("[plant.params]", key)
                 self.param_name(key, field, plant)
-                params[key] = self.number(v, field)
+                params[key] = self.positive(plant, key, self.number(v, field), field)
         return plant, params
+
+    def positive(self, plant: Plant, key: str, value: float, field: str) -> float:
+        """Refuse a value <= 0 of a parameter the plant declares physically positive."""
+        if key in plant.positive_params and not value > 0:
+            self.fail(
+                field,
+                f"{key} must be > 0 (plant {plant.name!r} declares it physically positive: "
+                f"{', '.join(plant.positive_params)}), got {value!r}.",
+            )
+        return value
 
     def param_name(self, key: str, field: str, plant: Plant) -> None:
         if key not in plant.param_names:
@@ -846,6 +886,23 @@ class _Parser:
                 )
             step_time = self.number(table["step_time"], "[input].step_time", low=0.0, unit="(s)")
         return InputSpec(kind, amplitude, frequency, offset, step_time)
+
+    def check_input_timing(self, spec: InputSpec, duration: float, dt: float) -> None:
+        """Warn about inputs that the sampled run cannot show (accepted, not changed)."""
+        nyquist = 0.5 / dt
+        if spec.kind in ("sine", "square") and spec.frequency >= nyquist:
+            self.warn(
+                "[input].frequency",
+                f"{spec.frequency!r} Hz is at or above the Nyquist frequency 1 / (2 dt) = "
+                f"{nyquist!r} Hz: the sampled input aliases (a sine at exactly Nyquist is "
+                "sampled at its zeros, i.e. no excitation).",
+            )
+        if spec.kind == "step" and spec.step_time >= duration:
+            self.warn(
+                "[input].step_time",
+                f"{spec.step_time!r} s is not before duration = {duration!r} s: the step "
+                "never happens in this run.",
+            )
 
     def parse_noise(self, value: Any, plant: Plant) -> tuple[np.ndarray, np.ndarray]:
         table = self.table(value, "[noise]")
@@ -902,7 +959,7 @@ class _Parser:
                 for key, v in ftable.items():
                     field = self.path(header, key)
                     self.param_name(key, field, plant)
-                    values[key] = self.number(v, field)
+                    values[key] = self.positive(plant, key, self.number(v, field), field)
             for key, v in values.items():
                 field = self.path(header, key)
                 if key in owner:
@@ -927,7 +984,9 @@ class _Parser:
         value: Any,
         faults: Mapping[str, Any],
         duration: float,
+        dt: float,
         plant: Plant,
+        nominal: Mapping[str, float],
     ) -> tuple[EventSpec, ...]:
         if value is None:
             return ()
@@ -939,6 +998,8 @@ class _Parser:
             )
         events = []
         first: dict[str, int] = {}
+        onset: dict[int, int] = {}
+        num_steps = int(round(duration / dt))
         for i, entry in enumerate(value):
             header = f"[[events]][{i}]"
             self.keys(entry, header, _EVENT_KEYS, ("time", "fault"))
@@ -950,6 +1011,14 @@ class _Parser:
                 high_open=True,
                 unit="(s; an onset in [0, duration))",
             )
+            step = int(round(time / dt))  # the sample the fault acts from (runner.py)
+            if step >= num_steps:
+                self.fail(
+                    f"{header}.time",
+                    f"{time!r} s acts from sample round(time / dt) = {step}, but the run's "
+                    f"samples are 0..{num_steps - 1}: the fault would never occur. Move the "
+                    f"onset before {(num_steps - 0.5) * dt!r} s.",
+                )
             fault = self.string(entry["fault"], f"{header}.fault")
             if fault not in faults:
                 extra = ""
@@ -973,6 +1042,23 @@ class _Parser:
             magnitude = self.number(
                 entry.get("magnitude", 1.0), f"{header}.magnitude", low=0.0, low_open=True
             )
+            bad = nonpositive_param(plant, nominal, faults[fault], magnitude)
+            if bad:
+                key, value = bad
+                self.fail(
+                    f"{header}.magnitude",
+                    f"{magnitude!r} takes {key} from {nominal[key]!r} to {value!r} (the fault "
+                    f"value {faults[fault][key]!r} at magnitude 1), but {key} must stay > 0.",
+                )
+            if step in onset:
+                self.warn(
+                    f"{header}.time",
+                    f"fault {fault!r} starts on the same sample ({step}) as "
+                    f"[[events]][{onset[step]}]: a UIMM bank (declared set + one fault) cannot "
+                    "represent two faults appearing together; it may declare them one after "
+                    "the other, or not at all (README, Known limitations).",
+                )
+            onset.setdefault(step, i)
             events.append(EventSpec(time, fault, magnitude))
         return tuple(sorted(events, key=lambda e: e.time))
 
@@ -1013,7 +1099,7 @@ class _Parser:
                 if abs(total - 1.0) > ROW_SUM_TOL:
                     self.fail(
                         "[filter].transition",
-                        f"row {i} (from model {i}) sums to {total!r}; every row must sum to 1 "
+                        f"row {i} (from model {i}) sums to {total:.12g}; every row must sum to 1 "
                         f"within {ROW_SUM_TOL} (rows are not normalised for you).",
                     )
             transition = _frozen(transition)
@@ -1031,9 +1117,16 @@ class _Parser:
             for i, p in enumerate(probs):
                 if p < 0.0:
                     self.fail(f"{field}[{i}]", f"probabilities must be >= 0, got {float(p)!r}.")
-            total = float(np.sum(probs))
+            with np.errstate(over="ignore"):  # an overflowing sum is refused below
+                total = float(np.sum(probs))
             if total <= 0.0:
                 self.fail(field, "all probabilities are zero; at least one must be > 0.")
+            if not np.isfinite(total):
+                self.fail(
+                    field,
+                    f"the entries sum to {total!r} (overflow); give probabilities (numbers in "
+                    "[0, 1], normalised with a warning if they do not sum to 1).",
+                )
             if abs(total - 1.0) > PROB_SUM_TOL:
                 probs = probs / total
                 self.warn(
@@ -1071,7 +1164,9 @@ class _Parser:
                 high=1.0,
                 low_open=True,
             )
-            hold = self.integer(dtable.get("hold", decision.hold), "[filter.decision].hold", low=1)
+            hold = self.integer(
+                dtable.get("hold", decision.hold), "[filter.decision].hold", low=1, high=MAX_INT32
+            )
             decision = DecisionSpec(threshold, hold)
 
         return FilterSpec(

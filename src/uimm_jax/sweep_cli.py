@@ -10,20 +10,26 @@ from __future__ import annotations
 
 import sys
 import time
-from pathlib import Path
 
 __all__ = ["register"]
 
 
+def _items(text: str) -> list[str]:
+    items = [v.strip() for v in text.split(",")]
+    if not all(items):
+        raise ValueError(f"empty item in {text!r}")
+    return items
+
+
 def _floats(text: str) -> list[float]:
     try:
-        return [float(v) for v in text.split(",") if v.strip()]
+        return [float(v) for v in _items(text)]
     except ValueError as err:
         raise ValueError(f"expected comma-separated numbers, got {text!r}") from err
 
 
 def _methods(text: str) -> list[str]:
-    return [v.strip() for v in text.split(",") if v.strip()]
+    return _items(text)
 
 
 def register(subparsers) -> None:
@@ -109,6 +115,18 @@ def _force_host_devices(count: int) -> None:
 
 
 def _cmd_sweep(args) -> int:
+    from uimm_jax.validation import check_out_dir, check_positive_int, check_seed
+
+    for flag, value, low in (
+        ("--runs", args.runs, 1),
+        ("--batch", args.batch, 1),
+        ("--chunk", args.chunk, 1),
+        ("--devices", args.devices, 1),
+        ("--host-devices", args.host_devices, 1),
+    ):
+        if value is not None:
+            check_positive_int(value, flag, low)
+    check_seed(args.seed, "--seed")
     if args.host_devices:
         _force_host_devices(args.host_devices)
     import jax
@@ -124,6 +142,7 @@ def _cmd_sweep(args) -> int:
     from uimm_jax.scenarios import load_scenario
 
     sc = load_scenario(args.scenario)
+    out = check_out_dir(args.out)
     opts = dict(
         runs=args.runs,
         methods=args.methods,
@@ -149,7 +168,6 @@ def _cmd_sweep(args) -> int:
     t0 = time.perf_counter()
     result = run_sweep(sc, **opts, devices=args.devices, progress=not args.quiet)
     wall = time.perf_counter() - t0
-    out = Path(args.out)
     written = write_sweep_outputs(
         result,
         out,

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import warnings
 import weakref
+from pathlib import Path
 
 import numpy as np
 
@@ -24,6 +25,12 @@ __all__ = [
 
 ROW_SUM_TOL = 1e-9
 
+# A PRNG seed is 32 bits: ``jax.random.PRNGKey`` maps a larger one to 0 without x64 and
+# overflows with it, so larger seeds are refused rather than silently aliased.
+MAX_SEED = 2**32 - 1
+# Step counts and the decision rule's persistence are int32 inside the time loop.
+MAX_INT32 = 2**31 - 1
+
 
 def _is_concrete(x) -> bool:
     try:
@@ -35,6 +42,8 @@ def _is_concrete(x) -> bool:
 
 def as_float_array(x, name: str) -> np.ndarray:
     """Convert to a float64 array, refusing non-numeric input with a named error."""
+    if np.iscomplexobj(x):
+        raise ValueError(f"{name}: expected real numbers, got complex values")
     try:
         a = np.asarray(x, dtype=np.float64)
     except (TypeError, ValueError) as err:
@@ -67,9 +76,15 @@ def check_finite(x, name: str) -> None:
 def check_stochastic(p, name: str = "transition") -> np.ndarray:
     """A square row-stochastic matrix: entries finite and >= 0, rows summing to 1.
 
-    Rows are *not* normalised silently: a row off by more than ``1e-9`` is an error.
+    Rows are *not* normalised silently: a row off by more than ``1e-9`` is an error
+    (more for a lower-precision input: ``4 M`` units of its float type's rounding, since
+    ``0.95`` in float32 is ``0.949999988``).
     """
     a = as_float_array(p, name)
+    tol = ROW_SUM_TOL
+    src = getattr(p, "dtype", None)
+    if src is not None and np.issubdtype(src, np.floating) and a.ndim == 2:
+        tol = max(tol, 4 * a.shape[0] * float(np.finfo(src).eps))
     if a.ndim != 2 or a.shape[0] != a.shape[1]:
         raise ValueError(f"{name}: expected a square (M, M) matrix, got shape {a.shape}")
     check_finite(a, name)
@@ -80,7 +95,7 @@ def check_stochastic(p, name: str = "transition") -> np.ndarray:
             "probabilities must be >= 0"
         )
     sums = a.sum(axis=1)
-    bad = np.flatnonzero(np.abs(sums - 1.0) > ROW_SUM_TOL)
+    bad = np.flatnonzero(np.abs(sums - 1.0) > tol)
     if bad.size:
         i = int(bad[0])
         raise ValueError(
@@ -97,9 +112,15 @@ def check_probabilities(p, size: int, name: str = "initial_mode_probs") -> np.nd
     check_finite(a, name)
     if np.any(a < 0):
         raise ValueError(f"{name}: entries must be >= 0, got {a.tolist()}")
-    s = a.sum()
+    with np.errstate(over="ignore"):  # an overflowing sum is refused below
+        s = a.sum()
     if s <= 0:
         raise ValueError(f"{name}: entries sum to {s}; at least one must be positive")
+    if not np.isfinite(s):
+        raise ValueError(
+            f"{name}: entries sum to {s} (overflow); give probabilities (numbers in [0, 1], "
+            "normalised with a warning if they do not sum to 1)"
+        )
     if abs(s - 1.0) > ROW_SUM_TOL:
         warnings.warn(
             f"{name} sum to {s:.12g}, not 1: normalised to {(a / s).round(6).tolist()}",
@@ -154,20 +175,19 @@ def check_gate(gate, name: str = "gate") -> float | None:
     return g
 
 
-def check_positive_int(value, name: str, minimum: int = 1) -> int:
-    """An integer ``>= minimum`` (booleans refused)."""
+def check_positive_int(value, name: str, minimum: int = 1, maximum: int | None = None) -> int:
+    """An integer ``>= minimum`` (and ``<= maximum`` if given; booleans refused)."""
+    rng = f">= {minimum}" if maximum is None else f"in [{minimum}, {maximum}]"
     if isinstance(value, bool) or not isinstance(value, int | np.integer):
-        raise ValueError(
-            f"{name}: expected an integer >= {minimum}, got {type(value).__name__} {value!r}"
-        )
-    if int(value) < minimum:
-        raise ValueError(f"{name}: expected an integer >= {minimum}, got {int(value)}")
+        raise ValueError(f"{name}: expected an integer {rng}, got {type(value).__name__} {value!r}")
+    if int(value) < minimum or (maximum is not None and int(value) > maximum):
+        raise ValueError(f"{name}: expected an integer {rng}, got {int(value)}")
     return int(value)
 
 
 def check_seed(seed, name: str = "seed") -> int | None:
-    """``None`` or an integer ``>= 0`` (as a scenario file's ``seed``)."""
-    return None if seed is None else check_positive_int(seed, name, 0)
+    """``None`` or an integer in ``[0, MAX_SEED]`` (as a scenario file's ``seed``)."""
+    return None if seed is None else check_positive_int(seed, name, 0, MAX_SEED)
 
 
 def check_scenario(scenario, name: str = "scenario") -> None:
@@ -394,3 +414,22 @@ def check_run_data(setup, y, u, chunk) -> tuple[np.ndarray, np.ndarray | None]:
     if u is not None:
         u = check_inputs(u, y.shape[0], plant.input_dim)
     return y, u
+
+
+def check_out_dir(path, name: str = "--out") -> Path:
+    """Create the output directory ``path`` (and parents) now, before any long computation.
+
+    Raises:
+        ValueError: ``path`` is an existing file, or the directory cannot be created.
+    """
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{name}: {str(out)!r} is a file; give a directory (created if missing)")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ValueError(
+            f"{name}: cannot create the output directory {str(out)!r} ({err.strerror or err}); "
+            "give a writable directory"
+        ) from None
+    return out
