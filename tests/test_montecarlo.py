@@ -14,6 +14,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import types
 from pathlib import Path
 
 import jax
@@ -280,6 +281,10 @@ def test_confusion_definition():
     want[1, 0] += 1
     want[2, 1] += 1
     np.testing.assert_array_equal(got, want)
+    # Per run (what tuning.evaluate's "every fault declared and isolated" uses): only runs
+    # 0 and 4 isolate every event; the fault-free run 3 has no event to isolate.
+    fake = types.SimpleNamespace(onset_step=onset[None], decl_step=decl[None], num_steps=N)
+    np.testing.assert_array_equal(mc.SweepResult.isolated(fake), [[True, False, False, True, True]])
 
 
 # --------------------------------------------------------------------------------------

@@ -791,6 +791,16 @@ class SweepResult:
         """``(C, R, F)`` bool: the fault occurred and was correctly declared."""
         return (self.onset_step >= 0) & (self.decl_step >= self.onset_step)
 
+    def isolated(self) -> np.ndarray:
+        """``(C, R)`` bool: every fault event of the run isolated (confusion diagonal)."""
+        on, de, N = self.onset_step, self.decl_step, self.num_steps
+        out = np.ones(on.shape[:2], bool)
+        for c in range(on.shape[0]):
+            for r in range(on.shape[1]):
+                conf = _confusion(on[c, r][None], de[c, r][None], N)
+                out[c, r] = np.trace(conf[1:, :-1]) == conf[1:].sum()
+        return out
+
     def false_declared(self) -> np.ndarray:
         """``(C, R, F)`` bool: the fault was declared while absent from the truth."""
         d = self.decl_step

@@ -1116,10 +1116,11 @@ def evaluate(
 
     Returns:
         dict ``case -> metrics`` with, per case, ``runs``, ``all_correct`` (fraction of
-        runs in which every fault event is correctly declared and nothing is falsely
-        declared), ``detection`` and ``median_delay_s`` per fault, ``isolation_accuracy``,
-        ``runs_with_false_declaration``, ``false_declarations`` and ``mode_accuracy``;
-        plus ``"_sweep"`` with the sweep's run-steps and runtime.
+        runs in which every fault event is correctly declared and isolated -- the first
+        declaration after its onset names it, see :meth:`SweepResult.isolated` -- and
+        nothing is falsely declared), ``detection`` and ``median_delay_s`` per fault,
+        ``isolation_accuracy``, ``runs_with_false_declaration``, ``false_declarations``
+        and ``mode_accuracy``; plus ``"_sweep"`` with the sweep's run-steps and runtime.
     """
     from uimm_jax.montecarlo import run_sweep
 
@@ -1134,11 +1135,12 @@ def evaluate(
     )
     det = res.detected()
     false = res.false_declared()
+    isolated = res.isolated()
     has = res.onset_step >= 0
     out = {}
     for cell, summ in zip(res.cells, res.summaries, strict=True):
         i = cell.index
-        ok = np.all(det[i] | ~has[i], axis=-1) & ~np.any(false[i], axis=-1)
+        ok = np.all(det[i] | ~has[i], axis=-1) & ~np.any(false[i], axis=-1) & isolated[i]
         out[cell.case] = {
             "runs": int(summ["runs"]),
             "all_correct": float(np.mean(ok)),
