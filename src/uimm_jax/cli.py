@@ -121,7 +121,7 @@ def _cmd_run(args) -> int:
 
     check_seed(args.seed, "--seed")
     sc = load_scenario(args.scenario)
-    check_out_dir(args.out)
+    out = check_out_dir(args.out)  # before the run, not after it
     method = args.method or sc.filter.method
     if args.float32:  # scaled float32 diagnoser (uimm_jax.scaling, docs/robustness.md)
         from uimm_jax.scaling import run_scenario_float32 as run_scenario
@@ -140,8 +140,6 @@ def _cmd_run(args) -> int:
     result = run_scenario(
         sc, method, args.seed, progress=_Progress(not args.quiet), measurements=measurements
     )
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     summary = dict(result.summary)
     summary["wall_time_s"] = time.perf_counter() - t0
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
