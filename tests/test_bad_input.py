@@ -166,12 +166,20 @@ def test_positive_params_are_declared_and_checked():
 
 def test_a_diverging_truth_is_an_error_not_missing_data():
     # Kq and Kc may grow without bound (no positivity limit), but 1e300 times the
-    # valve-wear deviation makes the simulated plant overflow.
+    # valve-wear deviation overflows the fault phase's discretised dynamics.
     d = short_dict(duration=0.01, events=(0.002, 0.004))
     d["events"][0]["magnitude"] = 1e300
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        with pytest.raises(ValueError, match=r"simulated truth is not finite .*magnitude"):
+        with pytest.raises(ValueError, match=r"dynamics are not finite after valve_wear"):
+            run_scenario(parse_scenario(d))
+    # A negative damping (Bh may be zero, so it is not a positive parameter) makes the
+    # plant unstable: finite matrices, but the simulated truth overflows after ~0.04 s.
+    d = short_dict(duration=0.1, events=(0.02, 0.04))
+    d["plant"]["params"] = {"Bh": -1e6}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        with pytest.raises(ValueError, match=r"simulated truth is not finite from t = 0\.0"):
             run_scenario(parse_scenario(d))
 
 

@@ -182,8 +182,25 @@ def setup_scenario(
         codes.append(int(np.sum(present * (1 << np.arange(len(names))))))
         steps.append(int(round(ev.time / scenario.dt)))
     th = jnp.asarray(np.array(thetas).T, dtype)  # (P, K)
+    cache = _jit_dyn_prepare(diag.dyn, th)
+    for leaf in jax.tree.leaves(cache):
+        ok = np.all(np.isfinite(np.asarray(leaf)).reshape(-1, len(thetas)), axis=0)
+        if not ok.all():
+            # A fault phase whose discretised dynamics overflow (an absurd magnitude):
+            # the simulation would be NaN from the first sample (phases are selected by
+            # a one-hot product).
+            k = int(np.argmin(ok))
+            when = ", ".join(
+                f"{e.fault} (magnitude {e.magnitude * magnitude_scale!r})"
+                for e in scenario.events[:k]
+            )
+            raise ValueError(
+                f"{scenario.source}: the truth's discretised dynamics are not finite "
+                f"{'after ' + when if k else 'at the nominal parameters'}: check "
+                "[[events]].magnitude, the fault values and [plant.params]."
+            )
     plan = TruthPlan(
-        cache=_jit_dyn_prepare(diag.dyn, th),
+        cache=cache,
         event_steps=jnp.asarray(np.array(steps, np.int32).reshape(-1)),
         true_codes=jnp.asarray(np.array(codes, np.int32)),
         Gq=jnp.asarray(noise_factor(scenario.process_noise), dtype),
