@@ -227,3 +227,9 @@ def test_mode_probability_plot_ignores_markers_outside_the_data(tmp_path):
     )
     plotting.save_figure(fig, tmp_path / "p.png")
     assert fig.axes[0].get_xlim()[1] < 1.0  # the axis spans the data, not the markers
+
+
+def test_measurement_array_errors_name_the_argument_once():
+    sc = short_scenario(duration=0.01, events=(0.002, 0.004))
+    with pytest.raises(ValueError, match=r"^measurements: expected shape \(N, 3\)"):
+        run_scenario(sc, measurements=np.zeros((5, 2)))

@@ -72,7 +72,9 @@ class MeasurementError(ValueError):
         self.detail = detail
         self.source = source
         self.where = where
-        super().__init__(f"{source}: " + (f"{where}: " if where else "") + detail)
+        # An array passed as ``measurements=`` has that name as its source: say it once.
+        shown = where if where and where != source else None
+        super().__init__(f"{source}: " + (f"{shown}: " if shown else "") + detail)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
