@@ -252,7 +252,7 @@ def plot_mode_probabilities(
         labels.append("declaration")
     ax.legend(handles, labels, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=9)
     ax.set_ylim(-0.02, 1.08)
-    if len(t):
+    if len(t) > 1:  # one sample: matplotlib widens the axis itself
         ax.set_xlim(t[0], t[-1])
     ax.set_xlabel("time (s)")
     ax.set_ylabel("mode probability")
@@ -336,7 +336,7 @@ def plot_mode_recognition(
 
     ax.set_yticks(range(len(codes)), [fault_set_name(c, fault_names) for c in codes])
     ax.set_ylim(-0.6, len(codes) - 0.4)
-    if len(t):
+    if len(t) > 1:  # one sample: matplotlib widens the axis itself
         ax.set_xlim(t[0], t[-1])
     ax.set_xlabel("time (s)")
     ax.set_ylabel("fault set")
@@ -435,7 +435,7 @@ def plot_states(
     for ax in axes[:-1]:
         ax.tick_params(labelbottom=False)
     axes[-1].set_xlabel("time (s)")
-    if len(t):
+    if len(t) > 1:
         axes[-1].set_xlim(t[0], t[-1])
     fig.suptitle(title if title is not None else "True and estimated states")
     return fig
