@@ -233,3 +233,13 @@ def test_measurement_array_errors_name_the_argument_once():
     sc = short_scenario(duration=0.01, events=(0.002, 0.004))
     with pytest.raises(ValueError, match=r"^measurements: expected shape \(N, 3\)"):
         run_scenario(sc, measurements=np.zeros((5, 2)))
+
+
+def test_one_sample_plots_do_not_warn(tmp_path):
+    t = np.array([1e-3])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fig = plotting.plot_mode_probabilities(t, np.full((1, 2), 0.5), ["a", "b"])
+        plotting.save_figure(fig, tmp_path / "p.png")
+        fig = plotting.plot_mode_recognition(t, np.zeros(1, int), np.zeros(1, int), ["f"])
+        plotting.save_figure(fig, tmp_path / "r.png")
