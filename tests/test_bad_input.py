@@ -243,3 +243,13 @@ def test_one_sample_plots_do_not_warn(tmp_path):
         plotting.save_figure(fig, tmp_path / "p.png")
         fig = plotting.plot_mode_recognition(t, np.zeros(1, int), np.zeros(1, int), ["f"])
         plotting.save_figure(fig, tmp_path / "r.png")
+
+
+def test_sweep_with_an_overflowing_truth_is_refused():
+    from uimm_jax.montecarlo import run_sweep
+
+    sc = short_scenario(duration=0.01, events=(0.002, 0.004))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        with pytest.raises(ValueError, match=r"\[sweep\]: the truth's discretised dynamics .*Kq"):
+            run_sweep(sc, runs=1, magnitudes=[1e300], fault_free=False, progress=False)

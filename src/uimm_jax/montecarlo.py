@@ -82,7 +82,13 @@ import numpy as np
 
 from uimm_jax.errors import ScenarioError
 from uimm_jax.filtering import scan_chunked
-from uimm_jax.simulate import TruthPlan, input_value, noise_factor, truth_step
+from uimm_jax.simulate import (
+    TruthPlan,
+    finite_phases,
+    input_value,
+    noise_factor,
+    truth_step,
+)
 from uimm_jax.validation import MAX_SEED
 
 __all__ = [
@@ -555,6 +561,18 @@ def _batch_plan(jobs: Sequence[_Job], setup, scenario, K: int, dtype) -> TruthPl
     uniq, idx = np.unique(th.reshape(-1, th.shape[-1]), axis=0, return_inverse=True)
     idx = idx.reshape(th.shape[:2])  # (B, K)
     caches = _phase_caches(setup.diagnoser.dyn, uniq, dtype)
+    ok = finite_phases(caches, len(uniq))
+    if not ok.all():
+        theta = uniq[int(np.argmin(ok))]
+        changed = {
+            k: float(v)
+            for k, v, v0 in zip(scenario.plant.param_names, theta, table.nominal, strict=True)
+            if v != v0
+        }
+        raise ValueError(
+            f"{scenario.source}: [sweep]: the truth's discretised dynamics are not finite for "
+            f"the parameters {changed}: check the magnitudes and the fault values."
+        )
     Gq = noise_factor(scenario.process_noise)
     Gr = noise_factor(scenario.measurement_noise)
     s = np.array([j.noise_scale for j in jobs], np.float64)

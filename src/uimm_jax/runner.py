@@ -28,7 +28,14 @@ from uimm_jax.bank import FaultTable, fault_table
 from uimm_jax.dynamics import make_dynamics
 from uimm_jax.errors import UIMMWarning
 from uimm_jax.filtering import scan_chunked
-from uimm_jax.simulate import InputSignal, TruthPlan, input_value, noise_factor, truth_step
+from uimm_jax.simulate import (
+    InputSignal,
+    TruthPlan,
+    finite_phases,
+    input_value,
+    noise_factor,
+    truth_step,
+)
 from uimm_jax.uimm import Diagnoser, DiagParams, build_diagnoser, make_params
 from uimm_jax.validation import check_positive_int, check_run_data, check_seed, check_setup_args
 
@@ -183,22 +190,17 @@ def setup_scenario(
         steps.append(int(round(ev.time / scenario.dt)))
     th = jnp.asarray(np.array(thetas).T, dtype)  # (P, K)
     cache = _jit_dyn_prepare(diag.dyn, th)
-    for leaf in jax.tree.leaves(cache):
-        ok = np.all(np.isfinite(np.asarray(leaf)).reshape(-1, len(thetas)), axis=0)
-        if not ok.all():
-            # A fault phase whose discretised dynamics overflow (an absurd magnitude):
-            # the simulation would be NaN from the first sample (phases are selected by
-            # a one-hot product).
-            k = int(np.argmin(ok))
-            when = ", ".join(
-                f"{e.fault} (magnitude {e.magnitude * magnitude_scale!r})"
-                for e in scenario.events[:k]
-            )
-            raise ValueError(
-                f"{scenario.source}: the truth's discretised dynamics are not finite "
-                f"{'after ' + when if k else 'at the nominal parameters'}: check "
-                "[[events]].magnitude, the fault values and [plant.params]."
-            )
+    ok = finite_phases(cache, len(thetas))
+    if not ok.all():
+        k = int(np.argmin(ok))
+        when = ", ".join(
+            f"{e.fault} (magnitude {e.magnitude * magnitude_scale!r})" for e in scenario.events[:k]
+        )
+        raise ValueError(
+            f"{scenario.source}: the truth's discretised dynamics are not finite "
+            f"{'after ' + when if k else 'at the nominal parameters'}: check "
+            "[[events]].magnitude, the fault values and [plant.params]."
+        )
     plan = TruthPlan(
         cache=cache,
         event_steps=jnp.asarray(np.array(steps, np.int32).reshape(-1)),

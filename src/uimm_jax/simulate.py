@@ -24,7 +24,14 @@ import numpy as np
 
 from uimm_jax import _wide as wd
 
-__all__ = ["InputSignal", "TruthPlan", "input_value", "noise_factor", "truth_step"]
+__all__ = [
+    "InputSignal",
+    "TruthPlan",
+    "finite_phases",
+    "input_value",
+    "noise_factor",
+    "truth_step",
+]
 
 INPUT_KINDS = {"sine": 0, "square": 1, "step": 2, "constant": 3}
 
@@ -100,6 +107,18 @@ class TruthPlan(NamedTuple):
 def phase_index(plan: TruthPlan, k: jax.Array) -> jax.Array:
     """Index of the truth phase at step ``k`` (number of events already started)."""
     return jnp.sum((k >= plan.event_steps).astype(jnp.int32), axis=-1)
+
+
+def finite_phases(cache: Any, num_phases: int) -> np.ndarray:
+    """``(num_phases,)`` bool: the discretised dynamics of each phase (last axis) are finite.
+
+    A phase whose matrices overflow (an absurd fault magnitude) would make the whole truth
+    NaN from the first sample: :func:`truth_step` selects phases by a one-hot product.
+    """
+    ok = np.ones(num_phases, bool)
+    for leaf in jax.tree.leaves(cache):
+        ok &= np.all(np.isfinite(np.asarray(leaf)).reshape(-1, num_phases), axis=0)
+    return ok
 
 
 def _select(leaf: jax.Array, onehot: jax.Array) -> jax.Array:
