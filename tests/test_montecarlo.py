@@ -157,6 +157,11 @@ def test_spec_defaults_from_scenario():
         ({"fault_free": "yes"}, "[sweep].fault_free", "true or false"),
         ({"seed": -1}, "[sweep].seed", "in [0, 4294967295], got -1"),
         ({"seed": 2**32}, "[sweep].seed", "in [0, 4294967295], got 4294967296"),
+        (
+            {"cases": [{"name": "x", "events": [{"fault": "leakage", "time": 0.19996}]}]},
+            "[sweep].cases[0].events[0].time",
+            "samples are 0..1999: the fault would never occur",
+        ),
         ({"magnitudes": [1.0, 3.0]}, "[sweep].magnitudes", "Eh must stay > 0"),
         ({"batch": 0}, "[sweep].batch", ">= 1"),
         ({"cases": {"a": 1}}, "[sweep].cases", "array of tables"),

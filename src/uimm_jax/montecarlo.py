@@ -309,6 +309,13 @@ def _parse_event(chk: _Check, entry: Any, field: str, scenario) -> EventDraw:
             f"{field}.time",
             f"onset {t!r} s is outside the run [0, {dur!r}) s (duration of the scenario).",
         )
+    N = scenario.num_steps
+    if int(round(lo / scenario.dt)) >= N:  # as the scenario file's [[events]].time
+        chk.fail(
+            f"{field}.time",
+            f"onset {lo!r} s acts from sample round(time / dt) = {int(round(lo / scenario.dt))}, "
+            f"but the run's samples are 0..{N - 1}: the fault would never occur.",
+        )
     mag = chk.number(entry.get("magnitude", 1.0), f"{field}.magnitude", positive=True)
     return EventDraw(str(fault), (lo, hi), mag)
 
