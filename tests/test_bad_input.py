@@ -149,19 +149,9 @@ def test_non_finite_matrices_of_a_user_plant_are_refused():
             make_dynamics(plant, 0.01, plant.theta({"m": 0.0})[None])
 
 
-def test_positive_params_are_declared_and_checked():
+def test_the_actuator_declares_its_positive_params():
+    # The positive_params mechanism itself: PLANT_CASES in test_robustness.py.
     assert {"mh", "Vh", "Eh"} <= set(HYDRAULIC_ACTUATOR.positive_params)
-    with pytest.raises(ValueError, match="positive_params names unknown parameter 'zz'"):
-        LinearPlant(
-            name="bad",
-            state_names=("x",),
-            input_names=("u",),
-            output_names=("x",),
-            param_names=("a",),
-            nominal_values=(1.0,),
-            positive_params=("zz",),
-            matrices=lambda p: (None, None, None, None),
-        )
 
 
 def test_a_diverging_truth_is_an_error_not_missing_data():

@@ -196,6 +196,18 @@ PLANT_CASES = {
     ),
     "param_count": ({"nominal_values": (1.0, 2.0)}, r"param_names has 1 entries"),
     "time_kind": ({"time": "hybrid"}, r"time must be 'continuous' or 'discrete'"),
+    "positive_unknown": (
+        {"positive_params": ("zz",)},
+        r"positive_params names unknown parameter 'zz'",
+    ),
+    "positive_nominal": (
+        {"positive_params": ("k",), "nominal_values": (0.0,)},
+        r"k is in positive_params but its nominal value is 0\.0",
+    ),
+    "positive_fault": (
+        {"positive_params": ("k",), "faults": (Fault("f", {"k": -1.0}),)},
+        r"fault 'f' sets k = -1\.0, but k is in positive_params",
+    ),
 }
 
 
