@@ -8,7 +8,7 @@ compare), ``lax.scan`` loops of
 
 * ``engine diagnoser``: the engine's UIMM step as the filter runs it (IMM cycle, health
   flags, innovation gate, non-finite guards, decision rule, declaration branch);
-* ``engine imm_step``: the IMM cycle alone (:func:`uimm_jax.imm.imm_step`);
+* ``engine imm_step``: the IMM cycle alone (:func:`uimm_jax.engine.imm.imm_step`);
 * ``lean IMM``: a stripped-down IMM cycle for the same bank, written here for speed only:
   eqs. 15-28 with C = I, per-pair mixing, ``P - W W'`` update, and *nothing else* -- no
   missing-data masking, no pivot repair, no gate, no guards, no decision rule.  Every
@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import bench_step_anatomy as anatomy  # sets the XLA flags and float64 before JAX starts
-from uimm_jax import _smallmat as sm
+from uimm_jax.engine import _smallmat as sm
 
 SYM = [(a, b) for a in range(3) for b in range(a, 3)]
 

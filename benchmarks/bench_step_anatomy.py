@@ -7,7 +7,7 @@ change to the kernel can be judged against the same yardstick.  For the actuator
 
 1. **Stages**: ``lax.scan`` loops over N steps of one stage at a time -- the mixing
    (eqs. 15-17), the prediction (eqs. 18-19, 22), the measurement update (eqs. 20-27),
-   the whole IMM cycle (:func:`uimm_jax.imm.imm_step`) and the whole diagnoser step with
+   the whole IMM cycle (:func:`uimm_jax.engine.imm.imm_step`) and the whole diagnoser step with
    its decision rule -- for one run and for a batch of runs; the time per step (minimum
    over repeats: this machine's timings are noisy, the minimum is the reproducible
    figure) and XLA's own count of the arithmetic of one step (``cost_analysis``: flops,
@@ -50,11 +50,11 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from uimm_jax import _smallmat as sm  # noqa: E402
-from uimm_jax import _wide as wd  # noqa: E402
 from uimm_jax import runner  # noqa: E402
-from uimm_jax.imm import imm_step, mix  # noqa: E402
-from uimm_jax.kalman import kf_predict_cov, kf_update  # noqa: E402
+from uimm_jax.engine import _smallmat as sm  # noqa: E402
+from uimm_jax.engine import _wide as wd  # noqa: E402
+from uimm_jax.engine.imm import imm_step, mix  # noqa: E402
+from uimm_jax.engine.kalman import kf_predict_cov, kf_update  # noqa: E402
 from uimm_jax.scenarios import load_scenario  # noqa: E402
 
 SCENARIO = REPO / "scenarios" / "paper_sim1_tuned.toml"

@@ -18,7 +18,7 @@ import uimm_jax
 from _reference import make_linear_problem
 from _robustness_helpers import short_dict, short_scenario
 from uimm_jax import cli, plotting
-from uimm_jax.dynamics import MAX_SQUARINGS, make_dynamics
+from uimm_jax.engine.dynamics import MAX_SQUARINGS, make_dynamics
 from uimm_jax.errors import UIMMWarning
 from uimm_jax.hydraulic_actuator import HYDRAULIC_ACTUATOR
 from uimm_jax.models import LinearPlant

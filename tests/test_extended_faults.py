@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from uimm_jax import build_diagnoser, fault_table, setup_scenario
-from uimm_jax.dynamics import make_dynamics
+from uimm_jax.engine.dynamics import make_dynamics
 from uimm_jax.hydraulic_actuator import HYDRAULIC_ACTUATOR as HA
 from uimm_jax.scenarios import load_scenario, parse_scenario, scenario_to_dict
 

@@ -16,8 +16,8 @@ import pytest
 
 from _robustness_helpers import CHUNK, all_finite, short_dict, short_scenario, write_short
 from uimm_jax import cli
+from uimm_jax.engine.imm import HEALTH_COV_REPAIRED
 from uimm_jax.errors import UIMMWarning
-from uimm_jax.imm import HEALTH_COV_REPAIRED
 from uimm_jax.runner import filter_measurements, run_scenario, setup_scenario, summarize
 from uimm_jax.scaling import (
     RESOLUTION_LIMIT,

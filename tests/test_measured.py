@@ -13,8 +13,8 @@ from _engine_helpers import run_imm_filter
 from _reference import make_linear_problem, naive_imm
 from _robustness_helpers import CHUNK, short_scenario, write_short
 from uimm_jax import cli
+from uimm_jax.engine.imm import HEALTH_MISSING
 from uimm_jax.errors import UIMMWarning
-from uimm_jax.imm import HEALTH_MISSING
 from uimm_jax.measured import (
     MeasuredData,
     MeasurementError,

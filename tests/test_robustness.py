@@ -17,9 +17,10 @@ import pytest
 from _reference import make_linear_problem, naive_imm
 from _robustness_helpers import CHUNK, all_finite, assert_declared_right, short_scenario
 from uimm_jax import Fault, fault_table
+from uimm_jax.engine.imm import HEALTH_COV_REPAIRED, HEALTH_GATED, HEALTH_MISSING
+from uimm_jax.engine.uimm import build_diagnoser
 from uimm_jax.errors import UIMMWarning
 from uimm_jax.filtering import LinearGaussianBank, imm_filter
-from uimm_jax.imm import HEALTH_COV_REPAIRED, HEALTH_GATED, HEALTH_MISSING
 from uimm_jax.measured import degrade_measurements
 from uimm_jax.models import LinearPlant, NonlinearPlant, get_plant, register_plant
 from uimm_jax.runner import (
@@ -29,7 +30,6 @@ from uimm_jax.runner import (
     simulate_scenario,
     summarize,
 )
-from uimm_jax.uimm import build_diagnoser
 
 # --------------------------------------------------------------------------------------
 # Validation of the Python API: every bad argument is named, with what is expected

@@ -11,11 +11,12 @@ building arrays.  For speed on the CPU, call
 
 from importlib.metadata import PackageNotFoundError, version
 
-from uimm_jax.bank import FaultTable, fault_table
+from uimm_jax.engine.bank import FaultTable, fault_table
+from uimm_jax.engine.imm import IMMParams, IMMState, StepInfo, imm_step
+from uimm_jax.engine.kalman import ekf_predict, ekf_update
+from uimm_jax.engine.uimm import DiagInfo, Diagnoser, DiagParams, DiagState, build_diagnoser
 from uimm_jax.errors import ScenarioError, UIMMWarning
 from uimm_jax.filtering import IMMResult, LinearGaussianBank, imm_filter
-from uimm_jax.imm import IMMParams, IMMState, StepInfo, imm_step
-from uimm_jax.kalman import ekf_predict, ekf_update
 from uimm_jax.models import (
     Fault,
     LinearPlant,
@@ -32,7 +33,6 @@ from uimm_jax.runner import (
     simulate_scenario,
 )
 from uimm_jax.scenarios import Scenario, dump_scenario, load_scenario, parse_scenario
-from uimm_jax.uimm import DiagInfo, Diagnoser, DiagParams, DiagState, build_diagnoser
 
 try:
     __version__ = version("uimm-jax")

@@ -22,9 +22,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from uimm_jax.dynamics import LinearCache, MatrixBankDynamics
+from uimm_jax.engine.dynamics import LinearCache, MatrixBankDynamics
+from uimm_jax.engine.imm import IMMParams, IMMState, imm_step
 from uimm_jax.errors import UIMMWarning
-from uimm_jax.imm import IMMParams, IMMState, imm_step
 from uimm_jax.validation import (
     as_float_array,
     check_bank,
@@ -70,7 +70,7 @@ class IMMResult(NamedTuple):
         model_loglik: ``(N, M)`` innovation log-likelihood of each model (eq. 27).
         loglik_increments: ``(N,)`` ``log p(y_k | y_<k)``.
         marginal_loglik: scalar ``log p(y_0..y_{N-1})``.
-        health: ``(N,)`` int32 bit flags (see :mod:`uimm_jax.imm`).
+        health: ``(N,)`` int32 bit flags (see :mod:`uimm_jax.engine.imm`).
         model_mean: ``(N, M, n)`` per-model posterior means, or ``None``.
     """
 
@@ -150,7 +150,7 @@ def imm_filter(
             ``inputs[k]``.
         measurements: ``(N, m)``; step k updates with ``measurements[k]``; NaN entries are
             missing channels.
-        gate: optional chi-square innovation gate (see :func:`uimm_jax.imm.imm_step`).
+        gate: optional chi-square innovation gate (see :func:`uimm_jax.engine.imm.imm_step`).
         return_model_means: also return the per-model posterior means.
 
     Returns:

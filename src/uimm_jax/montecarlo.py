@@ -593,7 +593,7 @@ def _batch_plan(jobs: Sequence[_Job], setup, scenario, K: int, dtype) -> TruthPl
 
 
 def _broadcast_state(state, B: int):
-    """A single-run :class:`~uimm_jax.uimm.DiagState` repeated over a batch of ``B`` runs."""
+    """A single-run :class:`~uimm_jax.engine.uimm.DiagState` repeated over a batch of ``B`` runs."""
 
     def model_last(a):  # (..., M) -> (..., B, M)
         a = jnp.expand_dims(a, -2)

@@ -24,8 +24,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from uimm_jax.bank import FaultTable, fault_table
-from uimm_jax.dynamics import make_dynamics
+from uimm_jax.engine.bank import FaultTable, fault_table
+from uimm_jax.engine.dynamics import make_dynamics
+from uimm_jax.engine.uimm import Diagnoser, DiagParams, build_diagnoser, make_params
 from uimm_jax.errors import UIMMWarning
 from uimm_jax.filtering import scan_chunked
 from uimm_jax.simulate import (
@@ -36,7 +37,6 @@ from uimm_jax.simulate import (
     noise_factor,
     truth_step,
 )
-from uimm_jax.uimm import Diagnoser, DiagParams, build_diagnoser, make_params
 from uimm_jax.validation import check_positive_int, check_run_data, check_seed, check_setup_args
 
 __all__ = [
@@ -59,8 +59,8 @@ class RunSetup:
     Attributes:
         scenario: the source scenario.
         method: ``"uimm"`` or ``"imm"``.
-        diagnoser: the :class:`~uimm_jax.uimm.Diagnoser` (static).
-        params: its :class:`~uimm_jax.uimm.DiagParams`.
+        diagnoser: the :class:`~uimm_jax.engine.uimm.Diagnoser` (static).
+        params: its :class:`~uimm_jax.engine.uimm.DiagParams`.
         init_state: initial diagnoser state (one run).
         signal: the :class:`~uimm_jax.simulate.InputSignal`.
         plan: the truth :class:`~uimm_jax.simulate.TruthPlan`.

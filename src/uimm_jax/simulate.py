@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from uimm_jax import _wide as wd
+from uimm_jax.engine import _wide as wd
 
 __all__ = [
     "InputSignal",

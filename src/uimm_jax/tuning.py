@@ -25,7 +25,7 @@ numbers: the same truth noise at every iteration), with the exact engine in the 
 Parameters not tuned (:class:`TuneConfig` flags) pass through ``lax.stop_gradient``.
 
 **Relaxation of the hard rule (straight-through).**  The forward pass of the loss *is*
-the exact hard diagnoser: :meth:`uimm_jax.uimm.Diagnoser.step`, with the hard threshold
+the exact hard diagnoser: :meth:`uimm_jax.engine.uimm.Diagnoser.step`, with the hard threshold
 crossing, the persistence counter, the masked parameter replacement and the ``lax.cond``
 re-discretisation, run with the current parameters.  The declaration events are therefore
 the ones the evaluation sees; their effect on the bank (which model set the filters use
@@ -97,8 +97,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from uimm_jax.engine.uimm import DiagParams, DiagState
 from uimm_jax.simulate import TruthPlan, input_value, noise_factor, truth_step
-from uimm_jax.uimm import DiagParams, DiagState
 
 __all__ = [
     "STRUCTURES",
@@ -369,7 +369,7 @@ def hard_hold(hold: jax.Array) -> jax.Array:
 
 
 def diag_params(c: Constrained, base: DiagParams) -> DiagParams:
-    """The engine's :class:`~uimm_jax.uimm.DiagParams` for constrained values."""
+    """The engine's :class:`~uimm_jax.engine.uimm.DiagParams` for constrained values."""
     imm = base.imm._replace(
         log_transition=c.log_transition.astype(base.imm.Q.dtype),
         Q=base.imm.Q * c.q_scale,
@@ -431,8 +431,8 @@ class TrainingBatch(NamedTuple):
         plan: batched :class:`~uimm_jax.simulate.TruthPlan` (phases last).
         keys: ``(B, 2)`` raw uint32 noise keys (common random numbers).
         onset: ``(B, F)`` int32 onset step of each fault (``INT32_MAX``: no event).
-        init: initial :class:`~uimm_jax.uimm.DiagState` of the batch.
-        base: the scenario's :class:`~uimm_jax.uimm.DiagParams` (Q, R, starting values).
+        init: initial :class:`~uimm_jax.engine.uimm.DiagState` of the batch.
+        base: the scenario's :class:`~uimm_jax.engine.uimm.DiagParams` (Q, R, starting values).
         signal: the input signal.
         data: optional precomputed truth (:func:`precompute_truth`); when present the
             loss reads it instead of simulating the truth inside the loop.
@@ -452,7 +452,7 @@ class Problem:
     """Static description of a tuning problem (hashed by identity).
 
     Attributes:
-        diagnoser: the engine's :class:`~uimm_jax.uimm.Diagnoser`.
+        diagnoser: the engine's :class:`~uimm_jax.engine.uimm.Diagnoser`.
         num_steps: samples per run.
         dt: sample time, s.
         input_dim: ``p``.

@@ -5,7 +5,7 @@ Two flags matter on the CPU (measured in benchmarks/README.md):
 * ``--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=<large>`` lets
   XLA CPU hoist a whole ``lax.scan`` into one compiled kernel when its body has no dots
   or custom calls -- the engine's bank algebra is written that way
-  (:mod:`uimm_jax._wide`, :mod:`uimm_jax._smallmat`).  Without it each step pays
+  (:mod:`uimm_jax.engine._wide`, :mod:`uimm_jax.engine._smallmat`).  Without it each step pays
   per-kernel dispatch (measured 4x slower for the actuator bank; 30x before the kernel
   was restructured into fewer, wider operations).
 * ``--xla_cpu_experimental_ynn_fusion_type=`` (empty) turns off the YNNPACK fusions that

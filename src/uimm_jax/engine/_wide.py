@@ -4,7 +4,7 @@ A bank of matrices is one array ``(r, c, *batch)`` -- matrix indices leading, th
 (runs..., models) trailing and contiguous.  A product is unrolled over its contraction
 index only: ``(X @ Y)[:, :, b] = sum_k X[:, k, None, b] * Y[None, k, :, b]``, i.e. ``k``
 broadcast multiply-adds on whole ``(r, c, *batch)`` blocks.  Compared with unrolling every
-entry (:mod:`uimm_jax._smallmat`) this gives XLA ~n^2 times fewer, wider operations and
+entry (:mod:`uimm_jax.engine._smallmat`) this gives XLA ~n^2 times fewer, wider operations and
 far fewer tiny kernels per step (measured 3-6x faster for ``A P A'``), and still no dot
 or custom call, so the time loop can be hoisted into one kernel.
 

@@ -18,9 +18,9 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from uimm_jax import _smallmat as sm
-from uimm_jax import _wide as wd
-from uimm_jax.kalman import kf_predict_cov, kf_update
+from uimm_jax.engine import _smallmat as sm
+from uimm_jax.engine import _wide as wd
+from uimm_jax.engine.kalman import kf_predict_cov, kf_update
 
 __all__ = ["IMMParams", "IMMState", "StepInfo", "imm_step", "log_normalize", "mix"]
 
@@ -192,7 +192,7 @@ def imm_step(
     """One IMM cycle: mix, predict with ``u``, update with ``y``, re-weight, combine.
 
     Args:
-        dyn: a dynamics object (:mod:`uimm_jax.dynamics`).
+        dyn: a dynamics object (:mod:`uimm_jax.engine.dynamics`).
         state: the carried :class:`IMMState`.
         cache: the dynamics cache of every model (from ``dyn.prepare``).
         params: :class:`IMMParams`.

@@ -5,14 +5,14 @@ A *dynamics* object turns a plant into what the bank kernel needs at each step:
 * ``prepare(theta) -> cache`` -- once per parameter set (at start-up, and again only when
   UIMM replaces fault parameters).  For a continuous linear plant this is the exact
   zero-order-hold discretisation ``[[Ad, Bd], [0, I]] = expm([[A, B], [0, 0]] T)`` (paper
-  eq. 10), computed elementwise (:func:`uimm_jax._smallmat.expm`) so that it may run
+  eq. 10), computed elementwise (:func:`uimm_jax.engine._smallmat.expm`) so that it may run
   inside the hoisted time loop under ``lax.cond``.
 * ``predict(cache, x, u) -> (x_pred, F)`` -- paper eqs. 18-19.
 * ``observe(cache, x_pred) -> (y_pred, H)`` -- paper eqs. 18, 20.
 
 Arrays are batch-minor: ``theta`` is ``(P, *batch)``, the cache leaves carry the matrix
 indices first and the batch (runs..., models) last; ``x`` and the results are nested
-arrays with the same layout (matrix axes first, batch last; :mod:`uimm_jax._wide`).
+arrays with the same layout (matrix axes first, batch last; :mod:`uimm_jax.engine._wide`).
 """
 
 from __future__ import annotations
@@ -24,8 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from uimm_jax import _smallmat as sm
-from uimm_jax import _wide as wd
+from uimm_jax.engine import _smallmat as sm
+from uimm_jax.engine import _wide as wd
 from uimm_jax.models import LinearPlant, NonlinearPlant
 
 __all__ = ["LinearCache", "LinearDynamics", "NonlinearDynamics", "make_dynamics", "zoh"]

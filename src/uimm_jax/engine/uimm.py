@@ -1,7 +1,7 @@
 """Fault diagnosers: the updated IMM (UIMM) and the combinatorial IMM, same harness.
 
 Both are ``(init, step)`` pairs over a :class:`DiagState`; ``step`` runs one IMM cycle
-(:func:`uimm_jax.imm.imm_step`) and then the decision rule.
+(:func:`uimm_jax.engine.imm.imm_step`) and then the decision rule.
 
 **Decision rule** (paper eq. 29 with persistence): let ``c`` be the most probable model.
 If ``mu_c >= threshold`` and ``c``'s fault set contains an undeclared fault, a run counter
@@ -13,7 +13,7 @@ when it reaches ``hold`` the faults of ``c`` are *declared*.  Declared faults ne
 D+fF]``.  Declaring fault ``j`` (model ``c = j+1``):
 
 1. ``D <- D | {j}``; every model's parameters are rebuilt with the masked update
-   ``where(mask, fault_value, nominal)`` (:func:`uimm_jax.bank.thetas_for_sets`) and the
+   ``where(mask, fault_value, nominal)`` (:func:`uimm_jax.engine.bank.thetas_for_sets`) and the
    bank is re-discretised -- under ``lax.cond``, i.e. only on the steps where some run
    declares, never every step.
 2. Hand-over of the estimate: every model restarts from the winning model's posterior
@@ -40,8 +40,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from uimm_jax.bank import FaultTable, combinatorial_sets, set_codes, thetas_for_sets, uimm_sets
-from uimm_jax.imm import IMMParams, IMMState, StepInfo, imm_step, log_normalize
+from uimm_jax.engine.bank import (
+    FaultTable,
+    combinatorial_sets,
+    set_codes,
+    thetas_for_sets,
+    uimm_sets,
+)
+from uimm_jax.engine.imm import IMMParams, IMMState, StepInfo, imm_step, log_normalize
 from uimm_jax.validation import check_gate
 
 __all__ = ["DiagInfo", "DiagParams", "DiagState", "Diagnoser", "build_diagnoser"]
@@ -51,7 +57,7 @@ class DiagParams(NamedTuple):
     """Differentiable parameters of a diagnoser.
 
     Attributes:
-        imm: transition (log), Q and R (:class:`uimm_jax.imm.IMMParams`).
+        imm: transition (log), Q and R (:class:`uimm_jax.engine.imm.IMMParams`).
         threshold: decision threshold ``mu_f`` on the mode probability (eq. 29).
         hold: persistence in samples (int32 scalar).
     """
@@ -65,7 +71,7 @@ class DiagState(NamedTuple):
     """Carried diagnoser state.
 
     Attributes:
-        imm: the bank's :class:`~uimm_jax.imm.IMMState`.
+        imm: the bank's :class:`~uimm_jax.engine.imm.IMMState`.
         cache: the dynamics cache of the current bank (re-built on declarations).
         declared: ``(*runs, F)`` bool, the declared fault set ``D`` (monotone).
         run_model: ``(*runs,)`` int32, the model whose run counter is active.
@@ -83,7 +89,7 @@ class DiagInfo(NamedTuple):
     """Per-step diagnoser outputs.
 
     Attributes:
-        step: the IMM :class:`~uimm_jax.imm.StepInfo`.
+        step: the IMM :class:`~uimm_jax.engine.imm.StepInfo`.
         recognised: ``(*runs,)`` int32 code of the recognised fault set (bit j = fault j).
         declared: ``(*runs,)`` int32 code of the declared set after this step.
         declared_now: ``(*runs,)`` bool, a declaration happened at this step.
@@ -104,8 +110,8 @@ class Diagnoser:
 
     Attributes:
         method: ``"uimm"`` or ``"imm"``.
-        dyn: the dynamics object (:mod:`uimm_jax.dynamics`).
-        table: the :class:`~uimm_jax.bank.FaultTable`.
+        dyn: the dynamics object (:mod:`uimm_jax.engine.dynamics`).
+        table: the :class:`~uimm_jax.engine.bank.FaultTable`.
         gate: optional chi-square innovation gate.
     """
 
@@ -297,7 +303,7 @@ def build_diagnoser(
 
     Args:
         method: ``"uimm"`` or ``"imm"``.
-        dyn: dynamics object for the plant (:func:`uimm_jax.dynamics.make_dynamics`).
+        dyn: dynamics object for the plant (:func:`uimm_jax.engine.dynamics.make_dynamics`).
         table: the fault table of the bank.
         gate: optional chi-square innovation gate.
     """

@@ -1,6 +1,6 @@
 """Kalman filter predict/update, written once for a whole bank (paper eqs. 18-27).
 
-The functions work on nested-list matrices (:mod:`uimm_jax._smallmat`) whose entries are
+The functions work on nested-list matrices (:mod:`uimm_jax.engine._smallmat`) whose entries are
 arrays of the batch shape (runs..., models), so one call filters every model of every run.
 :func:`ekf_predict` and :func:`ekf_update` are the user-facing single-model versions on
 ordinary arrays, with Jacobians from ``jax.jacfwd``.
@@ -37,8 +37,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from uimm_jax import _smallmat as sm
-from uimm_jax import _wide as wd
+from uimm_jax.engine import _smallmat as sm
+from uimm_jax.engine import _wide as wd
 
 __all__ = ["UpdateResult", "ekf_predict", "ekf_update", "kf_predict_cov", "kf_update"]
 
