@@ -80,8 +80,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from uimm_jax.errors import ScenarioError
 from uimm_jax.filtering import scan_chunked
+from uimm_jax.scenario.sweep import FAULT_FREE, CaseSpec, EventDraw, SweepSpec, sweep_spec
 from uimm_jax.simulate import (
     TruthPlan,
     finite_phases,
@@ -89,7 +89,6 @@ from uimm_jax.simulate import (
     noise_factor,
     truth_step,
 )
-from uimm_jax.validation import MAX_SEED
 
 __all__ = [
     "CaseSpec",
@@ -106,12 +105,6 @@ __all__ = [
     "write_sweep_outputs",
 ]
 
-FAULT_FREE = "fault-free"
-"""Name of the fault-free case (reserved)."""
-
-DEFAULT_BATCH = 128
-"""Runs per compiled batch (see ``docs/montecarlo.md`` for the measured throughput)."""
-
 CHUNK_RUN_STEPS = 2_000_000
 """Default chunk length: about this many run-steps per chunk (``chunk = 2e6 / batch``).
 
@@ -127,80 +120,10 @@ padding keeps the numbers bit-identical whatever the batch size and the device c
 
 _NEVER = np.iinfo(np.int32).max  # event step of a padding phase: never reached
 
-_SWEEP_KEYS = (
-    "runs",
-    "seed",
-    "methods",
-    "magnitudes",
-    "noise_scales",
-    "fault_free",
-    "cases",
-    "batch",
-    "chunk",
-)
-_CASE_KEYS = ("name", "events")
-_EVENT_KEYS = ("fault", "time", "magnitude")
-
 
 # --------------------------------------------------------------------------------------
 # Specification
 # --------------------------------------------------------------------------------------
-
-
-@dataclasses.dataclass(frozen=True)
-class EventDraw:
-    """One fault event of a case.
-
-    Attributes:
-        fault: a fault of the scenario's library.
-        time: ``(lo, hi)`` onset window in s; ``lo == hi`` for a fixed onset.  A window's
-            onset is drawn uniformly in ``[lo, hi)`` per run and rounded to a step.
-        magnitude: fraction of the nominal -> fault deviation (before the cell's scale).
-    """
-
-    fault: str
-    time: tuple[float, float]
-    magnitude: float = 1.0
-
-
-@dataclasses.dataclass(frozen=True)
-class CaseSpec:
-    """A named list of fault events (no event: fault-free).
-
-    Attributes:
-        name: the case's label.
-        events: the events (each fault at most once).
-    """
-
-    name: str
-    events: tuple[EventDraw, ...]
-
-
-@dataclasses.dataclass(frozen=True)
-class SweepSpec:
-    """A validated sweep specification (see :func:`sweep_spec`).
-
-    Attributes:
-        runs: runs per cell.
-        seed: root seed of the run keys.
-        methods: methods to compare (``"uimm"``, ``"imm"``).
-        magnitudes: scales of every event's magnitude.
-        noise_scales: scales of the truth's noise standard deviations.
-        fault_free: include the fault-free case.
-        cases: the fault cases.
-        batch: runs per compiled batch.
-        chunk: time steps per compiled chunk (``None``: about ``2e6 / batch``).
-    """
-
-    runs: int
-    seed: int
-    methods: tuple[str, ...]
-    magnitudes: tuple[float, ...]
-    noise_scales: tuple[float, ...]
-    fault_free: bool
-    cases: tuple[CaseSpec, ...]
-    batch: int = DEFAULT_BATCH
-    chunk: int | None = None
 
 
 class Cell(NamedTuple):
@@ -219,247 +142,6 @@ class Cell(NamedTuple):
     case: str
     magnitude: float
     noise_scale: float
-
-
-class _Check:
-    """Field-naming validation helpers raising :class:`ScenarioError`."""
-
-    def __init__(self, source: str | None):
-        self.source = source
-
-    def fail(self, field: str, detail: str):
-        raise ScenarioError(detail, source=self.source, field=field)
-
-    def integer(self, value: Any, field: str, low: int, high: int | None = None) -> int:
-        rng = f">= {low}" if high is None else f"in [{low}, {high}]"
-        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-            self.fail(field, f"must be an integer {rng}, got {type(value).__name__}.")
-        if int(value) < low or (high is not None and int(value) > high):
-            self.fail(field, f"must be an integer {rng}, got {int(value)}.")
-        return int(value)
-
-    def number(self, value: Any, field: str, *, positive: bool = False) -> float:
-        if isinstance(value, bool) or not isinstance(value, numbers.Real):
-            self.fail(field, f"must be a number, got {type(value).__name__}.")
-        x = float(value)
-        if not math.isfinite(x):
-            self.fail(field, f"must be a finite number, got {x!r}.")
-        if positive and x <= 0:
-            self.fail(field, f"must be > 0, got {x!r}.")
-        return x
-
-    def boolean(self, value: Any, field: str) -> bool:
-        if not isinstance(value, bool):
-            self.fail(field, f"must be true or false, got {type(value).__name__}.")
-        return value
-
-    def numbers(self, value: Any, field: str) -> tuple[float, ...]:
-        if _is_number(value):
-            value = [value]
-        if not isinstance(value, list | tuple) or not value:
-            self.fail(field, f"must be a non-empty array of numbers > 0, got {value!r}.")
-        out = tuple(self.number(v, f"{field}[{i}]", positive=True) for i, v in enumerate(value))
-        if len(set(out)) != len(out):
-            self.fail(field, f"has repeated values: {list(out)}.")
-        return out
-
-    def keys(self, table: Mapping, field: str, allowed: tuple[str, ...]) -> None:
-        for key in table:
-            if key not in allowed:
-                self.fail(
-                    f"{field}.{key}",
-                    f"unknown key {key!r} in {field}. Allowed keys: {', '.join(allowed)}.",
-                )
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
-
-
-def _parse_event(chk: _Check, entry: Any, field: str, scenario) -> EventDraw:
-    if not isinstance(entry, Mapping):
-        chk.fail(field, f"must be a table {{fault = ..., time = ...}}, got {entry!r}.")
-    chk.keys(entry, field, _EVENT_KEYS)
-    for key in ("fault", "time"):
-        if key not in entry:
-            chk.fail(f"{field}.{key}", "required key is missing.")
-    fault = entry["fault"]
-    if fault not in scenario.faults:
-        chk.fail(
-            f"{field}.fault",
-            f"unknown fault {fault!r}: not in the scenario's fault library "
-            f"({', '.join(scenario.faults)}).",
-        )
-    t = entry["time"]
-    dur = float(scenario.duration)
-    if _is_number(t):
-        lo = hi = chk.number(t, f"{field}.time")
-    elif isinstance(t, list | tuple) and len(t) == 2:
-        lo = chk.number(t[0], f"{field}.time[0]")
-        hi = chk.number(t[1], f"{field}.time[1]")
-        if hi < lo:
-            chk.fail(f"{field}.time", f"window [{lo!r}, {hi!r}] is reversed; write [lo, hi].")
-    else:
-        chk.fail(
-            f"{field}.time",
-            f"must be an onset time in s or a window [lo, hi] to draw it from, got {t!r}.",
-        )
-    if lo < 0 or hi >= dur:
-        chk.fail(
-            f"{field}.time",
-            f"onset {t!r} s is outside the run [0, {dur!r}) s (duration of the scenario).",
-        )
-    N = scenario.num_steps
-    if int(round(lo / scenario.dt)) >= N:  # as the scenario file's [[events]].time
-        chk.fail(
-            f"{field}.time",
-            f"onset {lo!r} s acts from sample round(time / dt) = {int(round(lo / scenario.dt))}, "
-            f"but the run's samples are 0..{N - 1}: the fault would never occur.",
-        )
-    mag = chk.number(entry.get("magnitude", 1.0), f"{field}.magnitude", positive=True)
-    return EventDraw(str(fault), (lo, hi), mag)
-
-
-def _parse_cases(chk: _Check, value: Any, scenario) -> tuple[CaseSpec, ...]:
-    field = "[sweep].cases"
-    if not isinstance(value, list | tuple):
-        chk.fail(field, f"must be an array of tables ([[sweep.cases]]), got {value!r}.")
-    cases = []
-    names = set()
-    for i, case in enumerate(value):
-        cf = f"{field}[{i}]"
-        if not isinstance(case, Mapping):
-            chk.fail(cf, f"must be a table with name and events, got {case!r}.")
-        chk.keys(case, cf, _CASE_KEYS)
-        name = case.get("name", f"case{i}")
-        if not isinstance(name, str) or not name.strip():
-            chk.fail(f"{cf}.name", f"must be a non-empty string, got {name!r}.")
-        if name == FAULT_FREE or name in names:
-            chk.fail(
-                f"{cf}.name",
-                f"{name!r} is already used"
-                + (" (reserved for the fault-free case)" if name == FAULT_FREE else "")
-                + ".",
-            )
-        names.add(name)
-        evs = case.get("events")
-        if not isinstance(evs, list | tuple) or not evs:
-            chk.fail(
-                f"{cf}.events",
-                "must be a non-empty array of events {fault, time[, magnitude]} (the "
-                "fault-free case is added by fault_free = true).",
-            )
-        events = tuple(
-            _parse_event(chk, e, f"{cf}.events[{j}]", scenario) for j, e in enumerate(evs)
-        )
-        seen = [e.fault for e in events]
-        dup = {f for f in seen if seen.count(f) > 1}
-        if dup:
-            chk.fail(
-                f"{cf}.events",
-                f"fault {sorted(dup)[0]!r} occurs twice; faults are irreversible, each may "
-                "occur once per case.",
-            )
-        cases.append(CaseSpec(name, events))
-    return tuple(cases)
-
-
-def sweep_spec(
-    scenario,
-    *,
-    runs: int | None = None,
-    seed: int | None = None,
-    methods: Sequence[str] | None = None,
-    magnitudes: Sequence[float] | None = None,
-    noise_scales: Sequence[float] | None = None,
-    fault_free: bool | None = None,
-    cases: Sequence[Mapping] | None = None,
-    batch: int | None = None,
-    chunk: int | None = None,
-) -> SweepSpec:
-    """Validate the scenario's ``[sweep]`` table, with the given arguments overriding it.
-
-    Defaults: ``runs = 100``, ``seed`` = the scenario's seed, ``methods`` = the scenario's
-    method, ``magnitudes = [1.0]``, ``noise_scales = [1.0]``, ``fault_free = true``,
-    ``cases`` = one case named after the scenario with its ``[[events]]`` (none if it has
-    no events), ``batch = 128``, ``chunk`` about ``2e6 / batch`` steps.
-
-    Raises:
-        ScenarioError: naming the field (``[sweep].runs``) and what is expected.
-    """
-    chk = _Check(getattr(scenario, "source", None))
-    table = scenario.sweep if scenario.sweep is not None else {}
-    if not isinstance(table, Mapping):
-        chk.fail("[sweep]", f"must be a table, got {table!r}.")
-    chk.keys(table, "[sweep]", _SWEEP_KEYS)
-
-    def pick(name, override):
-        if override is not None:
-            return override, name
-        return table.get(name), f"[sweep].{name}"
-
-    v, f = pick("runs", runs)
-    runs_ = 100 if v is None else chk.integer(v, f, 1)
-    v, f = pick("seed", seed)
-    seed_ = int(scenario.seed) if v is None else chk.integer(v, f, 0, MAX_SEED)
-    v, f = pick("methods", methods)
-    if v is None:
-        methods_ = (scenario.filter.method,)
-    else:
-        if isinstance(v, str):
-            v = [v]
-        if not isinstance(v, list | tuple) or not v:
-            chk.fail(f, f"must be a non-empty array of 'uimm' / 'imm', got {v!r}.")
-        for i, m in enumerate(v):
-            if m not in ("uimm", "imm"):
-                chk.fail(f"{f}[{i}]", f"must be 'uimm' or 'imm', got {m!r}.")
-        if len(set(v)) != len(v):
-            chk.fail(f, f"has repeated methods: {list(v)}.")
-        methods_ = tuple(v)
-    v, f = pick("magnitudes", magnitudes)
-    mags = (1.0,) if v is None else chk.numbers(list(v) if not _is_number(v) else v, f)
-    v, f = pick("noise_scales", noise_scales)
-    noises = (1.0,) if v is None else chk.numbers(list(v) if not _is_number(v) else v, f)
-    v, f = pick("fault_free", fault_free)
-    ff = True if v is None else chk.boolean(v, f)
-    v, f = pick("batch", batch)
-    batch_ = DEFAULT_BATCH if v is None else chk.integer(v, f, 1)
-    v, f = pick("chunk", chunk)
-    chunk_ = None if v is None else chk.integer(v, f, 1)
-    v = cases if cases is not None else table.get("cases")
-    if v is None:
-        evs = tuple(
-            EventDraw(e.fault, (float(e.time), float(e.time)), float(e.magnitude))
-            for e in scenario.events
-        )
-        cases_ = (CaseSpec(scenario.name, evs),) if evs else ()
-    else:
-        cases_ = _parse_cases(chk, v, scenario)
-    if not cases_ and not ff:
-        chk.fail("[sweep].cases", "no fault case and fault_free = false: nothing to run.")
-    _check_positive_params(chk, scenario, cases_, mags, pick("magnitudes", magnitudes)[1])
-    return SweepSpec(runs_, seed_, methods_, mags, noises, ff, cases_, batch_, chunk_)
-
-
-def _check_positive_params(chk, scenario, cases, mags, field: str) -> None:
-    """Refuse magnitudes that would take a physically positive parameter to <= 0."""
-    from uimm_jax.scenarios import nonpositive_param
-
-    nominal = scenario.nominal_params
-    for case in cases:
-        for e in case.events:
-            for mag in mags:
-                bad = nonpositive_param(
-                    scenario.plant, nominal, scenario.faults[e.fault], mag * e.magnitude
-                )
-                if bad:
-                    key, value = bad
-                    chk.fail(
-                        field,
-                        f"magnitude {mag!r} x {e.magnitude!r} of fault {e.fault!r} (case "
-                        f"{case.name!r}) takes {key} from {nominal[key]!r} to {value!r}, but "
-                        f"{key} must stay > 0.",
-                    )
 
 
 def _cells(spec: SweepSpec) -> list[Cell]:

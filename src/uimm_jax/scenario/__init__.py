@@ -1,0 +1,1 @@
+"""Scenario input: the spec, the TOML parser and writer, the ``[sweep]`` table and measured data."""
