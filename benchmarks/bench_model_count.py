@@ -831,7 +831,7 @@ def summary_lines(results: dict) -> list[str]:
 
 
 def write_plot(results: dict, path: Path) -> None:
-    from uimm_jax.plotting import plot_model_count, save_figure
+    from uimm_jax.studies.plots import plot_model_count, save_figure
 
     t = results["timing"]
     F = results["faults"]

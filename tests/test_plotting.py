@@ -1,65 +1,35 @@
-"""Tests for uimm_jax.plotting: every figure builds and saves; decimation keeps extremes."""
+"""studies.plots and plots_sweep: every figure builds and saves; decimation keeps extremes."""
 
 from __future__ import annotations
 
 import importlib
-import importlib.util
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import numpy as np
 import pytest
 from matplotlib.figure import Figure
 
-_SRC = Path(__file__).resolve().parents[1] / "src"
-_MODULE_FILE = _SRC / "uimm_jax" / "plotting.py"
+_MODULES = ("uimm_jax.studies.plots", "uimm_jax.studies.plots_sweep")
 
-# Import as uimm_jax.plotting when the package imports; otherwise (other modules of the
-# package still in progress) load the file on its own. The same logic runs in the
-# subprocess of test_no_pyplot_import.
+# The figure modules, imported by name; the same lines run in the subprocess of
+# test_no_pyplot_import.
 _LOADER = textwrap.dedent(
     f"""
-    import importlib, importlib.util, sys
-    sys.path.insert(0, {str(_SRC)!r})
-    try:
-        plotting = importlib.import_module("uimm_jax.plotting")
-    except Exception:
-        spec = importlib.util.spec_from_file_location(
-            "_uimm_jax_plotting", {str(_MODULE_FILE)!r}
-        )
-        plotting = importlib.util.module_from_spec(spec)
-        sys.modules[spec.name] = plotting
-        spec.loader.exec_module(plotting)
+    import importlib, sys
+    plots, plots_sweep = (importlib.import_module(m) for m in {_MODULES!r})
     """
 )
 
-
-def _load():
-    try:
-        return importlib.import_module("uimm_jax.plotting")
-    except Exception:
-        if str(_SRC) not in sys.path:
-            sys.path.insert(0, str(_SRC))
-        try:
-            return importlib.import_module("uimm_jax.plotting")
-        except Exception:
-            spec = importlib.util.spec_from_file_location("_uimm_jax_plotting", _MODULE_FILE)
-            module = importlib.util.module_from_spec(spec)
-            sys.modules[spec.name] = module
-            spec.loader.exec_module(module)
-            return module
-
-
-plotting = _load()
+plots, plots_sweep = (importlib.import_module(m) for m in _MODULES)
 
 FAULTS = ["valve_wear", "leakage", "air_in_oil"]
 
 
 def _saved(fig, tmp_path, name):
     assert isinstance(fig, Figure)
-    out = plotting.save_figure(fig, tmp_path / "sub" / "dir" / f"{name}.png")
+    out = plots.save_figure(fig, tmp_path / "sub" / "dir" / f"{name}.png")
     assert out.exists()
     data = out.read_bytes()
     assert len(data) > 1000
@@ -93,7 +63,7 @@ def test_decimate_exact_when_short():
     t = np.arange(100.0)
     y = np.sin(t)
     codes = np.arange(100) % 3
-    td, yd, cd = plotting._decimate(t, y, codes, max_points=100)
+    td, yd, cd = plots._decimate(t, y, codes, max_points=100)
     np.testing.assert_array_equal(td, t)
     np.testing.assert_array_equal(yd, y)
     np.testing.assert_array_equal(cd, codes)
@@ -108,7 +78,7 @@ def test_decimate_envelope_keeps_extremes(n):
     y[2 * n // 3 + 1] = -40.0
     y2 = np.stack([np.cos(t), rng.normal(size=n)], axis=1)
     max_points = 20000
-    td, yd, y2d = plotting._decimate(t, y, y2, max_points=max_points)
+    td, yd, y2d = plots._decimate(t, y, y2, max_points=max_points)
     assert len(td) <= max_points
     assert len(td) >= max_points // 2  # not wastefully coarse
     assert yd.shape == td.shape and y2d.shape == (len(td), 2)
@@ -125,7 +95,7 @@ def test_decimate_keeps_min_and_max_of_every_bucket():
     n, max_points = 10_000, 100
     t = np.arange(n, dtype=float)
     y = rng.normal(size=n)
-    td, yd = plotting._decimate(t, y, max_points=max_points)
+    td, yd = plots._decimate(t, y, max_points=max_points)
     assert len(td) <= max_points
     # Each decimated pair (first, last time of a bucket) brackets the bucket's samples.
     for k in range(0, len(td), 2):
@@ -138,7 +108,7 @@ def test_decimate_strides_integer_codes():
     n = 1_000_000
     t = np.arange(n) * 1e-4
     codes = (np.arange(n) // 300_000).astype(np.int32)
-    td, cd = plotting._decimate(t, codes, max_points=20000)
+    td, cd = plots._decimate(t, codes, max_points=20000)
     assert len(td) <= 20000
     assert cd.dtype == codes.dtype
     assert set(np.unique(cd)) <= set(np.unique(codes))
@@ -147,23 +117,23 @@ def test_decimate_strides_integer_codes():
 
 def test_decimate_rejects_bad_shapes():
     with pytest.raises(ValueError):
-        plotting._decimate(np.arange(10.0), np.arange(9.0))
+        plots._decimate(np.arange(10.0), np.arange(9.0))
 
 
 # ------------------------------------------------------------------------ figures
 
 
 def test_fault_set_name():
-    assert plotting.fault_set_name(0, FAULTS) == "fault-free"
-    assert plotting.fault_set_name(1, FAULTS) == "valve_wear"
-    assert plotting.fault_set_name(0b011, FAULTS) == "valve_wear + leakage"
-    assert plotting.fault_set_name(0b101, FAULTS) == "valve_wear + air_in_oil"
-    assert plotting.fault_set_name(0b1000, FAULTS) == "fault3"
+    assert plots.fault_set_name(0, FAULTS) == "fault-free"
+    assert plots.fault_set_name(1, FAULTS) == "valve_wear"
+    assert plots.fault_set_name(0b011, FAULTS) == "valve_wear + leakage"
+    assert plots.fault_set_name(0b101, FAULTS) == "valve_wear + air_in_oil"
+    assert plots.fault_set_name(0b1000, FAULTS) == "fault3"
 
 
 def test_plot_mode_probabilities(tmp_path):
     t, _, _, probs, models = _sim1()
-    fig = plotting.plot_mode_probabilities(
+    fig = plots.plot_mode_probabilities(
         t,
         probs,
         models,
@@ -182,19 +152,19 @@ def test_plot_mode_probabilities_long_run_is_decimated(tmp_path):
     t = np.arange(n) * 1e-4
     p = np.full((n, 2), 0.5)
     p[n // 2, 0] = 1.0
-    fig = plotting.plot_mode_probabilities(t, p, ["a", "b"])
+    fig = plots.plot_mode_probabilities(t, p, ["a", "b"])
     line = fig.axes[0].get_lines()[0]
     assert len(line.get_xdata()) <= 20000
     assert np.max(line.get_ydata()) == 1.0
     _saved(fig, tmp_path, "mode_probs_long")
-    fig = plotting.plot_mode_probabilities(t, p, ["a", "b"], max_points=2000)
+    fig = plots.plot_mode_probabilities(t, p, ["a", "b"], max_points=2000)
     line = fig.axes[0].get_lines()[0]
     assert len(line.get_xdata()) <= 2000 and np.max(line.get_ydata()) == 1.0
 
 
 def test_plot_mode_recognition(tmp_path):
     t, truth, recognised, _, _ = _sim1()
-    fig = plotting.plot_mode_recognition(t, recognised, truth, FAULTS)
+    fig = plots.plot_mode_recognition(t, recognised, truth, FAULTS)
     _saved(fig, tmp_path, "recognition")
     ax = fig.axes[0]
     labels = [tick.get_text() for tick in ax.get_yticklabels()]
@@ -207,7 +177,7 @@ def test_plot_mode_recognition(tmp_path):
 def test_plot_mode_recognition_perfect(tmp_path):
     t = np.linspace(0, 1, 50)
     truth = np.zeros(50, dtype=int)
-    fig = plotting.plot_mode_recognition(t, truth, truth, FAULTS)
+    fig = plots.plot_mode_recognition(t, truth, truth, FAULTS)
     assert "100.00 %" in " ".join(text.get_text() for text in fig.axes[0].texts)
     assert [tick.get_text() for tick in fig.axes[0].get_yticklabels()] == ["fault-free"]
     _saved(fig, tmp_path, "recognition_perfect")
@@ -219,7 +189,7 @@ def test_plot_states(tmp_path, residuals):
     t = np.linspace(0, 10, 2000)
     x = np.stack([1e-3 * np.sin(t), 1e-3 * np.cos(t), 1e6 * np.sin(0.3 * t)], axis=1)
     xe = x * (1 + 0.01 * rng.normal(size=x.shape))
-    fig = plotting.plot_states(
+    fig = plots.plot_states(
         t, x, xe, ["x_p", "v_p", "p_h"], units=["m", "m/s", "Pa"], residuals=residuals
     )
     assert len(fig.axes) == (6 if residuals else 3)
@@ -227,7 +197,7 @@ def test_plot_states(tmp_path, residuals):
 
 
 def test_plot_model_count(tmp_path):
-    fig = plotting.plot_model_count()
+    fig = plots.plot_model_count()
     (ax,) = fig.axes
     assert ax.get_yscale() == "log"
     imm, uimm = ax.get_lines()[:2]
@@ -240,7 +210,7 @@ def test_plot_model_count(tmp_path):
         "imm_us": [10.0, 20.0, 45.0, 100.0, float("nan")],
         "uimm_us": [9.0, 12.0, 15.0, 18.0, 25.0],
     }
-    fig = plotting.plot_model_count(6, measured=measured)
+    fig = plots.plot_model_count(6, measured=measured)
     assert len(fig.axes) == 2 and fig.axes[1].get_yscale() == "log"
     _saved(fig, tmp_path, "model_count_measured")
 
@@ -269,7 +239,7 @@ def test_plot_sweep(tmp_path):
             "median_delay_s": {"valve_wear": None},
         }
     )
-    fig = plotting.plot_sweep(cells, title="sweep")
+    fig = plots_sweep.plot_sweep(cells, title="sweep")
     assert len(fig.axes) == 2
     _saved(fig, tmp_path, "sweep")
 
@@ -277,7 +247,7 @@ def test_plot_sweep(tmp_path):
 def test_plot_confusion(tmp_path):
     m = np.array([[50, 2, 0], [3, 40, 7], [0, 1, 45]])
     labels = ["none", "valve_wear", "leakage"]
-    fig = plotting.plot_confusion(m, labels, labels)
+    fig = plots_sweep.plot_confusion(m, labels, labels)
     texts = {text.get_text() for text in fig.axes[0].texts}
     assert {"50", "2", "0", "45"} <= texts
     _saved(fig, tmp_path, "confusion")
@@ -285,10 +255,10 @@ def test_plot_confusion(tmp_path):
 
 def test_plot_loss_curve(tmp_path):
     k = np.arange(200)
-    fig = plotting.plot_loss_curve(100.0 * np.exp(-k / 20) + 0.01)
+    fig = plots_sweep.plot_loss_curve(100.0 * np.exp(-k / 20) + 0.01)
     assert fig.axes[0].get_yscale() == "log"
     _saved(fig, tmp_path, "loss")
-    fig = plotting.plot_loss_curve(
+    fig = plots_sweep.plot_loss_curve(
         {"train": np.linspace(2, 1, 50), "val": np.linspace(2.2, 1.3, 50)}
     )
     assert fig.axes[0].get_yscale() == "linear"
@@ -298,9 +268,10 @@ def test_plot_loss_curve(tmp_path):
 def test_no_pyplot_import():
     code = _LOADER + textwrap.dedent(
         """
-        assert hasattr(plotting, "plot_mode_probabilities")
+        assert hasattr(plots, "plot_mode_probabilities")
         import numpy as np
-        fig = plotting.plot_model_count(3)
+        fig = plots.plot_model_count(3)
+        fig = plots_sweep.plot_loss_curve(np.linspace(2.0, 1.0, 10))
         print("pyplot" if "matplotlib.pyplot" in sys.modules else "clean")
         """
     )
