@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import uimm_jax
 from _robustness_helpers import CHUNK, REPO, short_scenario, write_short
 from uimm_jax import cli
 from uimm_jax.errors import ScenarioError
@@ -190,3 +191,25 @@ def test_cli_and_python_api_give_identical_summaries(tmp_path, short_file):
     for key in SUMMARY_KEYS:
         assert summary[key] == api[key], key
     assert [d["fault"] for d in summary["declarations"]] == ["valve_wear", "leakage"]
+
+
+# --------------------------------------------------------------------------------------
+# --version and --help
+# --------------------------------------------------------------------------------------
+
+
+def test_version_prints_the_package_version():
+    proc = run_cli("--version", timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == f"uimm-jax {uimm_jax.__version__}"
+
+
+@pytest.mark.parametrize("command", [[], ["run"], ["sweep"], ["tune"]], ids=str)
+def test_help_shows_no_docstring_markup(command, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        cli.main([*command, "--help"])
+    assert exit_.value.code == 0
+    text = capsys.readouterr().out
+    assert text.startswith("usage: uimm-jax")
+    for markup in ("``", ":mod:", ":func:", ":class:", "`"):
+        assert markup not in text, (markup, text)

@@ -23,6 +23,8 @@ import time
 import warnings
 from pathlib import Path
 
+from uimm_jax.cli._text import plain
+
 __all__ = ["register"]
 
 
@@ -31,7 +33,7 @@ def register(subparsers) -> None:
     t = subparsers.add_parser(
         "tune",
         help="tune the transition matrix and decision rule by gradient descent (optax)",
-        description=__doc__.split("\n\n")[1].replace("\n", " "),
+        description=plain(__doc__.split("\n\n")[1].replace("\n", " ")),
     )
     t.add_argument("scenario", help="scenario TOML file (method uimm)")
     t.add_argument("--out", required=True, help="tuned scenario file to write (.toml)")
@@ -233,8 +235,9 @@ def _train(args, sc, config, train_seed, log):
     """Fit the settings, write the tuned scenario and its loss curve: ``(tuned, record)``."""
     import numpy as np
 
-    from uimm_jax import plotting, tuning
+    from uimm_jax import tuning
     from uimm_jax.scenarios import dump_scenario, parse_scenario
+    from uimm_jax.studies import plots, plots_sweep
 
     train_dur = float(args.train_duration or sc.duration)
     train_sc = tuning.rescale_scenario(sc, train_dur)
@@ -273,10 +276,10 @@ def _train(args, sc, config, train_seed, log):
     out = Path(args.out)
     dump_scenario(tuned_sc, out)
     png = out.with_suffix(".loss.png")
-    fig = plotting.plot_loss_curve(
+    fig = plots_sweep.plot_loss_curve(
         res.history, title=f"Tuning loss: {sc.name} ({sum(counts)} runs of {train_dur:g} s)"
     )
-    plotting.save_figure(fig, png)
+    plots.save_figure(fig, png)
     record = {
         "command": shlex.join(["uimm-jax", *sys.argv[1:]]),
         "scenario": str(args.scenario),

@@ -1,29 +1,40 @@
-"""Command line: ``uimm-jax run SCENARIO [--out DIR] [--method uimm|imm] [--seed N] [--float32]``.
+"""``uimm-jax run SCENARIO [--out DIR] [--method uimm|imm] [--seed N] [--float32]``.
 
-The CLI (not the library) enables float64 and the recommended XLA CPU flags before JAX
-starts (opt out of the flags with ``UIMM_JAX_NO_XLA_FLAGS=1``).  Invalid input is reported
-as one line naming the field, without a traceback, and the exit status is 2.
+Simulates a scenario (or reads measured data) and diagnoses it; writes ``summary.json`` and
+the figures, and prints a summary. Registered by :func:`uimm_jax.cli.build_parser`; the
+command line has already enabled float64 and the recommended XLA CPU flags when it runs.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
-import warnings
 from pathlib import Path
 
-__all__ = ["main"]
+__all__ = ["register"]
 
 
-def _setup_jax() -> None:
-    from uimm_jax.xla_flags import apply_recommended_xla_flags
-
-    apply_recommended_xla_flags()
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
+def register(sub) -> None:
+    """Add the ``run`` sub-command to the ``uimm-jax`` parser."""
+    r = sub.add_parser("run", help="simulate a scenario and diagnose it")
+    r.add_argument("scenario", help="scenario TOML file (see docs/scenarios.md)")
+    r.add_argument("--out", default="out", help="output directory (default: out)")
+    r.add_argument("--method", choices=("uimm", "imm"), help="override [filter].method")
+    r.add_argument("--seed", type=int, help="override the scenario's seed")
+    r.add_argument(
+        "--measurements",
+        help="diagnose measured data (.csv, .npy or .npz) instead of simulating; "
+        "see docs/measurements.md",
+    )
+    r.add_argument(
+        "--float32",
+        action="store_true",
+        help="run the diagnoser in float32 on a scaled model (docs/robustness.md)",
+    )
+    r.add_argument("--no-plots", action="store_true", help="write summary.json only")
+    r.add_argument("--quiet", action="store_true", help="no progress output")
+    r.set_defaults(func=_cmd_run)
 
 
 class _Progress:
@@ -50,7 +61,7 @@ class _Progress:
 def _write_figures(result, out: Path) -> list[str]:
     import numpy as np
 
-    from uimm_jax import plotting
+    from uimm_jax.studies import plots
 
     sc = result.setup.scenario
     diag = result.setup.diagnoser
@@ -61,7 +72,7 @@ def _write_figures(result, out: Path) -> list[str]:
     decl = [(d["time"], d["fault"]) for d in s["declarations"]]
     title = f"{sc.name} ({s['method'].upper()}, {s['num_models']} models)"
     figs = {
-        "mode_probabilities.png": plotting.plot_mode_probabilities(
+        "mode_probabilities.png": plots.plot_mode_probabilities(
             t,
             o["mode_probs"],
             diag.model_labels(),
@@ -69,25 +80,25 @@ def _write_figures(result, out: Path) -> list[str]:
             declarations=decl,
             title=f"Mode probabilities - {title}",
         ),
-        "mode_recognition.png": plotting.plot_mode_recognition(
+        "mode_recognition.png": plots.plot_mode_recognition(
             t,
             np.asarray(o["recognised"]),
             np.asarray(result.truth["truth"]),
             list(diag.table.names),
             title=f"Recognised mode vs truth - {title}",
         ),
-        "states.png": plotting.plot_states(
+        "states.png": plots.plot_states(
             t,
             result.truth["x"],
             o["mean"],
             list(sc.plant.state_names),
             title=f"Estimated vs true states - {title}",
         ),
-        "model_count.png": plotting.plot_model_count(max(10, diag.num_faults)),
+        "model_count.png": plots.plot_model_count(max(10, diag.num_faults)),
     }
     written = []
     for name, fig in figs.items():
-        plotting.save_figure(fig, out / name)
+        plots.save_figure(fig, out / name)
         written.append(str(out / name))
     return written
 
@@ -147,65 +158,3 @@ def _cmd_run(args) -> int:
     _print_summary(summary)
     print(f"wrote {out / 'summary.json'}" + (f" and {len(figures)} figures" if figures else ""))
     return 0
-
-
-def build_parser() -> argparse.ArgumentParser:
-    """The ``uimm-jax`` argument parser (sub-commands register here)."""
-    p = argparse.ArgumentParser(prog="uimm-jax", description=__doc__.split("\n")[0])
-    sub = p.add_subparsers(dest="command", required=True)
-    r = sub.add_parser("run", help="simulate a scenario and diagnose it")
-    r.add_argument("scenario", help="scenario TOML file (see docs/scenarios.md)")
-    r.add_argument("--out", default="out", help="output directory (default: out)")
-    r.add_argument("--method", choices=("uimm", "imm"), help="override [filter].method")
-    r.add_argument("--seed", type=int, help="override the scenario's seed")
-    r.add_argument(
-        "--measurements",
-        help="diagnose measured data (.csv, .npy or .npz) instead of simulating; "
-        "see docs/measurements.md",
-    )
-    r.add_argument(
-        "--float32",
-        action="store_true",
-        help="run the diagnoser in float32 on a scaled model (docs/robustness.md)",
-    )
-    r.add_argument("--no-plots", action="store_true", help="write summary.json only")
-    r.add_argument("--quiet", action="store_true", help="no progress output")
-    r.set_defaults(func=_cmd_run)
-    _register_optional(sub)
-    return p
-
-
-def _register_optional(sub) -> None:
-    """Sub-commands that live in their own modules (sweep, tune)."""
-    for modname in ("uimm_jax.sweep_cli", "uimm_jax.tune_cli"):
-        try:
-            mod = __import__(modname, fromlist=["register"])
-        except ImportError:
-            continue
-        mod.register(sub)
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``uimm-jax`` command."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    _setup_jax()
-    from uimm_jax.errors import ScenarioError, UIMMWarning
-
-    def _show(message, category, filename, lineno, file=None, line=None):
-        print(f"warning: {message}", file=sys.stderr)
-
-    del UIMMWarning
-    warnings.showwarning = _show
-    try:
-        return int(args.func(args) or 0)
-    except (ScenarioError, ValueError, OSError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

@@ -1,9 +1,10 @@
 """Command line: ``uimm-jax sweep SCENARIO [--runs N] [--out DIR] ...`` (Monte Carlo study).
 
-Registered by :mod:`uimm_jax.cli`.  Runs :func:`uimm_jax.montecarlo.run_sweep` with the
-scenario's ``[sweep]`` table, overridden by the options, and writes ``results.json``,
-``results.csv`` and the figures (see ``docs/montecarlo.md``).  The CLI has already enabled
-float64 and the recommended XLA CPU flags when the command runs.
+Registered by :func:`uimm_jax.cli.build_parser`.  Runs
+:func:`uimm_jax.montecarlo.run_sweep` with the scenario's ``[sweep]`` table, overridden by
+the options, and writes ``results.json``, ``results.csv`` and the figures (see
+``docs/montecarlo.md``).  The CLI has already enabled float64 and the recommended XLA CPU
+flags when the command runs.
 """
 
 from __future__ import annotations
