@@ -23,6 +23,7 @@ Each test's failure message lists every violation, not only the first.
 from __future__ import annotations
 
 import ast
+import re
 import textwrap
 from collections.abc import Iterator
 from pathlib import Path
@@ -320,6 +321,14 @@ def test_every_package_import_names_a_module(graph):
 def test_no_module_over_600_lines(graph):
     violations = size_violations(graph[0])
     _check(f"modules over {MAX_LINES} lines", violations)
+
+
+def test_architecture_doc_names_existing_modules():
+    doc = SRC.parent / "docs" / "architecture.md"
+    layers = "|".join(LAYERS)
+    named = re.findall(rf"`(?:uimm_jax/)?((?:{layers})/\w+\.py|[\w]+\.py)`", doc.read_text())
+    missing = sorted({n for n in named if not (SRC / PACKAGE / n).is_file()})
+    _check("modules named in docs/architecture.md that do not exist", missing)
 
 
 # --------------------------------------------------------------------------- the scanner
