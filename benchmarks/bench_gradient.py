@@ -50,7 +50,7 @@ def _problem(steps: int, batch: int, segment: int | None, checkpoint: bool = Tru
     import warnings
 
     from uimm_jax import tuning
-    from uimm_jax.scenarios import load_scenario
+    from uimm_jax.scenario.parse import load_scenario
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -3,7 +3,7 @@
 The paper's claim (Sun, Wang & Lin 2020, section 3.3, Fig. 4) is that the updated IMM needs
 F + 1 models where a combinatorial IMM needs 2^F, at no loss of diagnosis.  This script
 measures it on the hydraulic actuator with the extended fault library of
-:mod:`uimm_jax.hydraulic_actuator` (the paper's 3 faults, then the 7 extra ones, in the
+:mod:`uimm_jax.plants.hydraulic_actuator` (the paper's 3 faults, then the 7 extra ones, in the
 library's order: bank F uses the first F), all in one run on one machine:
 
 1. **Cost per step**, F = 1 .. 10, both methods, float64, one run (no batch axis):
@@ -109,7 +109,7 @@ def _ram_bytes() -> float:
 
 def fault_names() -> list[str]:
     """The hydraulic actuator's 10 library faults, paper's three first."""
-    from uimm_jax.hydraulic_actuator import HYDRAULIC_ACTUATOR
+    from uimm_jax.plants.hydraulic_actuator import HYDRAULIC_ACTUATOR
 
     return list(HYDRAULIC_ACTUATOR.fault_library)
 
@@ -131,10 +131,11 @@ def build_scenario(
         filter_overrides: ``[filter]`` entries to replace (``stay``, ``decision``).
 
     Returns:
-        A validated :class:`~uimm_jax.scenarios.Scenario` (``stay`` from the base
+        A validated :class:`~uimm_jax.Scenario` (``stay`` from the base
         scenario, default initial mode probabilities).
     """
-    from uimm_jax.scenarios import load_scenario, parse_scenario, scenario_to_dict
+    from uimm_jax.scenario.parse import load_scenario, parse_scenario
+    from uimm_jax.scenario.write import scenario_to_dict
 
     names = fault_names()
     d = scenario_to_dict(load_scenario(BASE_SCENARIO))

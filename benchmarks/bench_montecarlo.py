@@ -36,7 +36,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _scenario(num_steps: int):
-    from uimm_jax.scenarios import load_scenario, parse_scenario, scenario_to_dict
+    from uimm_jax.scenario.parse import load_scenario, parse_scenario
+    from uimm_jax.scenario.write import scenario_to_dict
 
     d = scenario_to_dict(load_scenario(ROOT / "scenarios" / "paper_sim1_tuned.toml"))
     dt = d["dt"]

@@ -55,7 +55,7 @@ from uimm_jax.engine import _smallmat as sm  # noqa: E402
 from uimm_jax.engine import _wide as wd  # noqa: E402
 from uimm_jax.engine.imm import imm_step, mix  # noqa: E402
 from uimm_jax.engine.kalman import kf_predict_cov, kf_update  # noqa: E402
-from uimm_jax.scenarios import load_scenario  # noqa: E402
+from uimm_jax.scenario.parse import load_scenario  # noqa: E402
 
 SCENARIO = REPO / "scenarios" / "paper_sim1_tuned.toml"
 

@@ -70,7 +70,8 @@ def _child(args) -> dict:
 
     import uimm_jax
     from uimm_jax import runner
-    from uimm_jax.scenarios import parse_scenario, scenario_to_dict
+    from uimm_jax.scenario.parse import parse_scenario
+    from uimm_jax.scenario.write import scenario_to_dict
 
     compile_log: list[float] = []
 

@@ -45,7 +45,8 @@ from uimm_jax.runner import (  # noqa: E402
     summarize,
 )
 from uimm_jax.scaling import filter_float32, float32_agreement, setup_float32  # noqa: E402
-from uimm_jax.scenarios import load_scenario, parse_scenario, scenario_to_dict  # noqa: E402
+from uimm_jax.scenario.parse import load_scenario, parse_scenario  # noqa: E402
+from uimm_jax.scenario.write import scenario_to_dict  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT = PAPER_SCENARIOS

@@ -2,7 +2,7 @@
 
 For every shipped scenario: simulate the truth (float64), drop 10 % of the measurement
 entries (NaN) and add 100 outliers of 1e6 standard deviations
-(:func:`uimm_jax.measured.degrade_measurements`), then diagnose with the scenario's own
+(:func:`uimm_jax.scenario.measured.degrade_measurements`), then diagnose with the scenario's own
 settings and, for comparison, without the innovation gate and with the default gate.
 Reports non-finite outputs, declarations (against the truth) and health-flag counts.
 Results go to ``benchmarks/results/robustness_long.json``.
@@ -33,14 +33,15 @@ import numpy as np  # noqa: E402
 
 from _common import PAPER_SCENARIOS  # noqa: E402
 from uimm_jax.errors import UIMMWarning  # noqa: E402
-from uimm_jax.measured import degrade_measurements  # noqa: E402
 from uimm_jax.runner import (  # noqa: E402
     filter_measurements,
     setup_scenario,
     simulate_scenario,
     summarize,
 )
-from uimm_jax.scenarios import load_scenario, parse_scenario, scenario_to_dict  # noqa: E402
+from uimm_jax.scenario.measured import degrade_measurements  # noqa: E402
+from uimm_jax.scenario.parse import load_scenario, parse_scenario  # noqa: E402
+from uimm_jax.scenario.write import scenario_to_dict  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT = PAPER_SCENARIOS

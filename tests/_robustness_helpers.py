@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from uimm_jax.errors import UIMMWarning
-from uimm_jax.scenarios import dump_scenario, load_scenario, parse_scenario, scenario_to_dict
+from uimm_jax.scenario.parse import load_scenario, parse_scenario
+from uimm_jax.scenario.write import dump_scenario, scenario_to_dict
 
 REPO = Path(__file__).resolve().parents[1]
 SCENARIOS = REPO / "scenarios"

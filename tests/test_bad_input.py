@@ -18,14 +18,16 @@ import uimm_jax
 from _reference import make_linear_problem
 from _robustness_helpers import short_dict, short_scenario
 from uimm_jax import cli
-from uimm_jax.engine.dynamics import MAX_SQUARINGS, make_dynamics
+from uimm_jax._checks import MAX_SEED, check_seed, check_stochastic
+from uimm_jax.engine.dynamics import MAX_SQUARINGS
 from uimm_jax.errors import UIMMWarning
-from uimm_jax.hydraulic_actuator import HYDRAULIC_ACTUATOR
-from uimm_jax.models import LinearPlant
+from uimm_jax.plants.base import LinearPlant
+from uimm_jax.plants.dynamics import make_dynamics
+from uimm_jax.plants.hydraulic_actuator import HYDRAULIC_ACTUATOR
 from uimm_jax.runner import run_scenario
-from uimm_jax.scenarios import dump_scenario, load_scenario, parse_scenario
+from uimm_jax.scenario.parse import load_scenario, parse_scenario
+from uimm_jax.scenario.write import dump_scenario
 from uimm_jax.studies import plots as plotting
-from uimm_jax.validation import MAX_SEED, check_seed, check_stochastic
 
 
 def _filter(problem, **changes):

@@ -32,11 +32,13 @@ import scipy.linalg
 import uimm_jax
 from uimm_jax import runner
 from uimm_jax.engine import bank, imm, kalman
-from uimm_jax.engine.dynamics import NonlinearDynamics, make_dynamics
+from uimm_jax.engine.dynamics import NonlinearDynamics
 from uimm_jax.engine.uimm import DiagState, build_diagnoser
-from uimm_jax.hydraulic_actuator import EXTRA_FAULTS, HYDRAULIC_ACTUATOR, PAPER_FAULTS
-from uimm_jax.models import LinearPlant, NonlinearPlant
-from uimm_jax.scenarios import parse_scenario, scenario_to_dict
+from uimm_jax.plants.base import LinearPlant, NonlinearPlant
+from uimm_jax.plants.dynamics import make_dynamics
+from uimm_jax.plants.hydraulic_actuator import EXTRA_FAULTS, HYDRAULIC_ACTUATOR, PAPER_FAULTS
+from uimm_jax.scenario.parse import parse_scenario
+from uimm_jax.scenario.write import scenario_to_dict
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 

@@ -13,9 +13,10 @@ import numpy as np
 import pytest
 
 from uimm_jax import build_diagnoser, fault_table, setup_scenario
-from uimm_jax.engine.dynamics import make_dynamics
-from uimm_jax.hydraulic_actuator import HYDRAULIC_ACTUATOR as HA
-from uimm_jax.scenarios import load_scenario, parse_scenario, scenario_to_dict
+from uimm_jax.plants.dynamics import make_dynamics
+from uimm_jax.plants.hydraulic_actuator import HYDRAULIC_ACTUATOR as HA
+from uimm_jax.scenario.parse import load_scenario, parse_scenario
+from uimm_jax.scenario.write import scenario_to_dict
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = {

@@ -29,7 +29,7 @@ from uimm_jax.scaling import (
     scale_scenario,
     scaled_plant,
 )
-from uimm_jax.scenarios import parse_scenario
+from uimm_jax.scenario.parse import parse_scenario
 
 #: Stated tolerance on declaration times, float32 vs float64 (docs/robustness.md).
 DECLARATION_TOLERANCE_S = 1e-3

@@ -15,19 +15,19 @@ from _robustness_helpers import CHUNK, short_scenario, write_short
 from uimm_jax import cli
 from uimm_jax.engine.imm import HEALTH_MISSING
 from uimm_jax.errors import UIMMWarning
-from uimm_jax.measured import (
-    MeasuredData,
-    MeasurementError,
-    degrade_measurements,
-    load_measurements,
-    measured_data,
-)
 from uimm_jax.runner import (
     filter_measurements,
     run_scenario,
     scenario_inputs,
     setup_scenario,
     simulate_scenario,
+)
+from uimm_jax.scenario.measured import (
+    MeasuredData,
+    MeasurementError,
+    degrade_measurements,
+    load_measurements,
+    measured_data,
 )
 
 
@@ -173,7 +173,7 @@ def test_other_file_errors(tmp_path, sc):
     np.savez(tmp_path / "u.npz", y=np.zeros((2, 3)), u=np.zeros((3, 1)))
     with pytest.raises(MeasurementError, match=r"inputs: expected shape \(2, 1\)"):
         load_measurements(tmp_path / "u.npz", sc)
-    with pytest.raises(TypeError, match="expected a uimm_jax.scenarios.Scenario"):
+    with pytest.raises(TypeError, match="expected a uimm_jax.Scenario"):
         load_measurements(tmp_path / "wide.npy", "scenarios/paper_sim1.toml")
 
 

@@ -25,7 +25,8 @@ import pytest
 from uimm_jax import montecarlo as mc
 from uimm_jax import runner
 from uimm_jax.errors import ScenarioError
-from uimm_jax.scenarios import load_scenario, parse_scenario, scenario_to_dict
+from uimm_jax.scenario.parse import load_scenario, parse_scenario
+from uimm_jax.scenario.write import scenario_to_dict
 from uimm_jax.simulate import truth_step
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -471,7 +472,7 @@ def test_sharded_equals_unsharded(sweep, sharded_proc):
 
 def test_cli_sweep_writes_results(sweep, tmp_path, capsys):
     from uimm_jax.cli import main
-    from uimm_jax.scenarios import dump_scenario
+    from uimm_jax.scenario.write import dump_scenario
 
     path = dump_scenario(small_scenario(), tmp_path / "small.toml")
     out = tmp_path / "out"
@@ -493,7 +494,7 @@ def test_cli_sweep_writes_results(sweep, tmp_path, capsys):
 
 def test_cli_sweep_reports_bad_field(tmp_path, capsys):
     from uimm_jax.cli import main
-    from uimm_jax.scenarios import dump_scenario
+    from uimm_jax.scenario.write import dump_scenario
 
     path = dump_scenario(small_scenario({"runs": 0}), tmp_path / "bad.toml")
     assert main(["sweep", str(path), "--quiet"]) == 2

@@ -21,8 +21,8 @@ from uimm_jax.engine.imm import HEALTH_COV_REPAIRED, HEALTH_GATED, HEALTH_MISSIN
 from uimm_jax.engine.uimm import build_diagnoser
 from uimm_jax.errors import UIMMWarning
 from uimm_jax.filtering import LinearGaussianBank, imm_filter
-from uimm_jax.measured import degrade_measurements
-from uimm_jax.models import LinearPlant, NonlinearPlant, get_plant, register_plant
+from uimm_jax.plants.base import LinearPlant, NonlinearPlant
+from uimm_jax.plants.registry import get_plant, register_plant
 from uimm_jax.runner import (
     filter_measurements,
     run_scenario,
@@ -30,6 +30,7 @@ from uimm_jax.runner import (
     simulate_scenario,
     summarize,
 )
+from uimm_jax.scenario.measured import degrade_measurements
 
 # --------------------------------------------------------------------------------------
 # Validation of the Python API: every bad argument is named, with what is expected

@@ -13,18 +13,10 @@ import numpy as np
 import pytest
 
 from uimm_jax.errors import ScenarioError, UIMMWarning
-from uimm_jax.models import get_plant
-from uimm_jax.scenarios import (
-    DecisionSpec,
-    EventSpec,
-    InputSpec,
-    Scenario,
-    dump_scenario,
-    load_scenario,
-    parse_scenario,
-    scenario_to_dict,
-    scenario_to_toml,
-)
+from uimm_jax.plants.registry import get_plant
+from uimm_jax.scenario.parse import load_scenario, parse_scenario
+from uimm_jax.scenario.spec import DecisionSpec, EventSpec, InputSpec, Scenario
+from uimm_jax.scenario.write import dump_scenario, scenario_to_dict, scenario_to_toml
 
 REPO = Path(__file__).resolve().parents[1]
 SCENARIOS = REPO / "scenarios"

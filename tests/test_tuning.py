@@ -24,7 +24,8 @@ import pytest
 
 import uimm_jax
 from uimm_jax import tuning
-from uimm_jax.scenarios import dump_scenario, load_scenario, parse_scenario
+from uimm_jax.scenario.parse import load_scenario, parse_scenario
+from uimm_jax.scenario.write import dump_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 STEPS = 300

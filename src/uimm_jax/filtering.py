@@ -22,10 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from uimm_jax.engine.dynamics import LinearCache, MatrixBankDynamics
-from uimm_jax.engine.imm import IMMParams, IMMState, imm_step
-from uimm_jax.errors import UIMMWarning
-from uimm_jax.validation import (
+from uimm_jax._checks import (
     as_float_array,
     check_bank,
     check_covariance,
@@ -35,6 +32,9 @@ from uimm_jax.validation import (
     check_shape,
     check_stochastic,
 )
+from uimm_jax.engine.dynamics import LinearCache, MatrixBankDynamics
+from uimm_jax.engine.imm import IMMParams, IMMState, imm_step
+from uimm_jax.errors import UIMMWarning
 
 __all__ = ["IMMResult", "LinearGaussianBank", "imm_filter", "scan_chunked"]
 

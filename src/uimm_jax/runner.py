@@ -24,11 +24,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from uimm_jax._checks import check_positive_int, check_seed
 from uimm_jax.engine.bank import FaultTable, fault_table
-from uimm_jax.engine.dynamics import make_dynamics
 from uimm_jax.engine.uimm import Diagnoser, DiagParams, build_diagnoser, make_params
 from uimm_jax.errors import UIMMWarning
 from uimm_jax.filtering import scan_chunked
+from uimm_jax.plants.dynamics import make_dynamics
 from uimm_jax.simulate import (
     InputSignal,
     TruthPlan,
@@ -37,7 +38,8 @@ from uimm_jax.simulate import (
     noise_factor,
     truth_step,
 )
-from uimm_jax.validation import check_positive_int, check_run_data, check_seed, check_setup_args
+from uimm_jax.studies.checks import check_run_data, check_setup_args
+from uimm_jax.studies.measured import truth_for_measurements
 
 __all__ = [
     "RunResult",
@@ -400,9 +402,7 @@ def run_scenario(
     if measurements is None:
         truth = simulate_scenario(setup, seed, chunk=chunk, progress=cb("simulate"))
     else:  # measured data: no simulation; inputs from the data when it has them
-        from uimm_jax.measured import truth_for_measurements
-
-        truth = truth_for_measurements(setup, measurements)
+        truth = truth_for_measurements(setup, measurements, scenario_inputs)
     t_sim = time.perf_counter() - t0
     y = truth["y"]
     t1 = time.perf_counter()

@@ -45,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from uimm_jax.errors import UIMMWarning
-from uimm_jax.models import LinearPlant, NonlinearPlant
+from uimm_jax.plants.base import LinearPlant, NonlinearPlant
 
 __all__ = [
     "Scaling",
@@ -400,9 +400,15 @@ def run_scenario_float32(
         A :class:`~uimm_jax.runner.RunResult` whose ``setup`` is the float32 setup of the
         scaled scenario; ``outputs["mean"]`` is in physical units.
     """
-    from uimm_jax.measured import truth_for_measurements
-    from uimm_jax.runner import DEFAULT_CHUNK, RunResult, setup_scenario, simulate_scenario
+    from uimm_jax.runner import (
+        DEFAULT_CHUNK,
+        RunResult,
+        scenario_inputs,
+        setup_scenario,
+        simulate_scenario,
+    )
     from uimm_jax.runner import summarize as _summarize
+    from uimm_jax.studies.measured import truth_for_measurements
 
     if not jax.config.jax_enable_x64:
         raise RuntimeError(
@@ -421,7 +427,7 @@ def run_scenario_float32(
         setup64 = setup_scenario(scenario, method)
         truth = simulate_scenario(setup64, seed, chunk=chunk, progress=cb("simulate"))
     else:
-        truth = truth_for_measurements(setup32, measurements)
+        truth = truth_for_measurements(setup32, measurements, scenario_inputs)
     t_sim = time.perf_counter() - t0
     t1 = time.perf_counter()
     _, outputs = filter_float32(

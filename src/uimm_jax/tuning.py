@@ -1072,7 +1072,8 @@ def rescale_scenario(scenario, duration: float):
     Returns:
         A validated :class:`~uimm_jax.scenarios.Scenario` (the same object if unchanged).
     """
-    from uimm_jax.scenarios import parse_scenario, scenario_to_dict
+    from uimm_jax.scenario.parse import parse_scenario
+    from uimm_jax.scenario.write import scenario_to_dict
 
     if float(duration) == float(scenario.duration):
         return scenario
@@ -1253,7 +1254,7 @@ def tuned_scenario(scenario, settings: Mapping[str, Any], *, name: str | None = 
     Returns:
         A dict for :func:`~uimm_jax.scenarios.parse_scenario` / ``dump_scenario``.
     """
-    from uimm_jax.scenarios import scenario_to_dict
+    from uimm_jax.scenario.write import scenario_to_dict
 
     d = scenario_to_dict(scenario)
     P = np.asarray(settings["transition"], np.float64)

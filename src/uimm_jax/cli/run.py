@@ -126,9 +126,9 @@ def _print_summary(s: dict) -> None:
 
 
 def _cmd_run(args) -> int:
+    from uimm_jax._checks import check_out_dir, check_seed
     from uimm_jax.runner import run_scenario
-    from uimm_jax.scenarios import load_scenario
-    from uimm_jax.validation import check_out_dir, check_seed
+    from uimm_jax.scenario.parse import load_scenario
 
     check_seed(args.seed, "--seed")
     sc = load_scenario(args.scenario)
@@ -138,7 +138,7 @@ def _cmd_run(args) -> int:
         from uimm_jax.scaling import run_scenario_float32 as run_scenario
     measurements = None
     if args.measurements:
-        from uimm_jax.measured import load_measurements
+        from uimm_jax.scenario.measured import load_measurements
 
         measurements = load_measurements(args.measurements, sc)
     steps = sc.num_steps if measurements is None else measurements.num_steps

@@ -116,7 +116,7 @@ def _force_host_devices(count: int) -> None:
 
 
 def _cmd_sweep(args) -> int:
-    from uimm_jax.validation import check_out_dir, check_positive_int, check_seed
+    from uimm_jax._checks import check_out_dir, check_positive_int, check_seed
 
     for flag, value, low in (
         ("--runs", args.runs, 1),
@@ -140,7 +140,7 @@ def _cmd_sweep(args) -> int:
             )
 
     from uimm_jax.montecarlo import run_sweep, sweep_spec, write_sweep_outputs
-    from uimm_jax.scenarios import load_scenario
+    from uimm_jax.scenario.parse import load_scenario
 
     sc = load_scenario(args.scenario)
     out = check_out_dir(args.out)

@@ -131,7 +131,7 @@ def _table(rows: list[tuple[str, str, str]]) -> str:
 
 def _cmd_tune(args) -> int:
     from uimm_jax import tuning
-    from uimm_jax.scenarios import load_scenario
+    from uimm_jax.scenario.parse import load_scenario
 
     quiet = args.quiet
     log = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))
@@ -236,7 +236,8 @@ def _train(args, sc, config, train_seed, log):
     import numpy as np
 
     from uimm_jax import tuning
-    from uimm_jax.scenarios import dump_scenario, parse_scenario
+    from uimm_jax.scenario.parse import parse_scenario
+    from uimm_jax.scenario.write import dump_scenario
     from uimm_jax.studies import plots, plots_sweep
 
     train_dur = float(args.train_duration or sc.duration)

@@ -26,9 +26,8 @@ import numpy as np
 
 from uimm_jax.engine import _smallmat as sm
 from uimm_jax.engine import _wide as wd
-from uimm_jax.models import LinearPlant, NonlinearPlant
 
-__all__ = ["LinearCache", "LinearDynamics", "NonlinearDynamics", "make_dynamics", "zoh"]
+__all__ = ["LinearCache", "LinearDynamics", "NonlinearDynamics", "zoh"]
 
 
 class LinearCache(NamedTuple):
@@ -116,7 +115,7 @@ def _zoh_settings(mats: list[np.ndarray], dt: float) -> tuple[np.ndarray, int]:
 
 
 class LinearDynamics:
-    """Dynamics of a :class:`~uimm_jax.models.LinearPlant` (exact KF = EKF).
+    """Dynamics of a :class:`~uimm_jax.plants.base.LinearPlant` (exact KF = EKF).
 
     Args:
         plant: the plant.
@@ -128,7 +127,7 @@ class LinearDynamics:
 
     linear = True
 
-    def __init__(self, plant: LinearPlant, dt: float, reference_thetas: np.ndarray):
+    def __init__(self, plant: Any, dt: float, reference_thetas: np.ndarray):
         self.plant = plant
         self.dt = float(dt)
         refs = np.atleast_2d(np.asarray(reference_thetas, dtype=np.float64))
@@ -220,7 +219,7 @@ class LinearDynamics:
 
 
 class NonlinearDynamics:
-    """Dynamics of a :class:`~uimm_jax.models.NonlinearPlant` (EKF, Jacobians by jacfwd).
+    """Dynamics of a :class:`~uimm_jax.plants.base.NonlinearPlant` (EKF, Jacobians by jacfwd).
 
     Continuous-time plants are integrated with ``plant.substeps`` classical RK4 steps per
     sample; the EKF Jacobian is that of the whole discrete map.
@@ -228,7 +227,7 @@ class NonlinearDynamics:
 
     linear = False
 
-    def __init__(self, plant: NonlinearPlant, dt: float, reference_thetas: Any = None):
+    def __init__(self, plant: Any, dt: float, reference_thetas: Any = None):
         del reference_thetas
         self.plant = plant
         self.dt = float(dt)
@@ -291,15 +290,6 @@ class NonlinearDynamics:
 
         yp, H = self._vmapped(fn, theta, x)
         return yp, H
-
-
-def make_dynamics(plant, dt: float, reference_thetas: np.ndarray):
-    """Build the dynamics object that suits ``plant``."""
-    if isinstance(plant, LinearPlant):
-        return LinearDynamics(plant, dt, reference_thetas)
-    if isinstance(plant, NonlinearPlant):
-        return NonlinearDynamics(plant, dt, reference_thetas)
-    raise TypeError(f"expected a LinearPlant or NonlinearPlant, got {type(plant).__name__}")
 
 
 class MatrixBankDynamics(LinearDynamics):

@@ -40,6 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from uimm_jax._checks import check_gate
 from uimm_jax.engine.bank import (
     FaultTable,
     combinatorial_sets,
@@ -48,7 +49,6 @@ from uimm_jax.engine.bank import (
     uimm_sets,
 )
 from uimm_jax.engine.imm import IMMParams, IMMState, StepInfo, imm_step, log_normalize
-from uimm_jax.validation import check_gate
 
 __all__ = ["DiagInfo", "DiagParams", "DiagState", "Diagnoser", "build_diagnoser"]
 

@@ -9,14 +9,12 @@ runner (:mod:`uimm_jax.montecarlo`) only reads that spec.  Errors are
 from __future__ import annotations
 
 import dataclasses
-import math
-import numbers
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from uimm_jax.errors import ScenarioError
-from uimm_jax.scenarios import nonpositive_param
-from uimm_jax.validation import MAX_SEED
+from uimm_jax._checks import MAX_SEED, is_number
+from uimm_jax.scenario._fields import FieldChecker
+from uimm_jax.scenario.spec import METHODS, nonpositive_param
 
 __all__ = [
     "DEFAULT_BATCH",
@@ -104,62 +102,19 @@ class SweepSpec:
     chunk: int | None = None
 
 
-class _Check:
-    """Field-naming validation helpers raising :class:`ScenarioError`."""
-
-    def __init__(self, source: str | None):
-        self.source = source
-
-    def fail(self, field: str, detail: str):
-        raise ScenarioError(detail, source=self.source, field=field)
-
-    def integer(self, value: Any, field: str, low: int, high: int | None = None) -> int:
-        rng = f">= {low}" if high is None else f"in [{low}, {high}]"
-        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-            self.fail(field, f"must be an integer {rng}, got {type(value).__name__}.")
-        if int(value) < low or (high is not None and int(value) > high):
-            self.fail(field, f"must be an integer {rng}, got {int(value)}.")
-        return int(value)
-
-    def number(self, value: Any, field: str, *, positive: bool = False) -> float:
-        if isinstance(value, bool) or not isinstance(value, numbers.Real):
-            self.fail(field, f"must be a number, got {type(value).__name__}.")
-        x = float(value)
-        if not math.isfinite(x):
-            self.fail(field, f"must be a finite number, got {x!r}.")
-        if positive and x <= 0:
-            self.fail(field, f"must be > 0, got {x!r}.")
-        return x
-
-    def boolean(self, value: Any, field: str) -> bool:
-        if not isinstance(value, bool):
-            self.fail(field, f"must be true or false, got {type(value).__name__}.")
-        return value
-
-    def numbers(self, value: Any, field: str) -> tuple[float, ...]:
-        if _is_number(value):
-            value = [value]
-        if not isinstance(value, list | tuple) or not value:
-            self.fail(field, f"must be a non-empty array of numbers > 0, got {value!r}.")
-        out = tuple(self.number(v, f"{field}[{i}]", positive=True) for i, v in enumerate(value))
-        if len(set(out)) != len(out):
-            self.fail(field, f"has repeated values: {list(out)}.")
-        return out
-
-    def keys(self, table: Mapping, field: str, allowed: tuple[str, ...]) -> None:
-        for key in table:
-            if key not in allowed:
-                self.fail(
-                    f"{field}.{key}",
-                    f"unknown key {key!r} in {field}. Allowed keys: {', '.join(allowed)}.",
-                )
+def _positive_numbers(chk: FieldChecker, value: Any, field: str) -> tuple[float, ...]:
+    """A number or a non-empty array of distinct finite numbers > 0."""
+    if is_number(value):
+        value = [value]
+    if not isinstance(value, list | tuple) or not value:
+        chk.fail(field, f"must be a non-empty array of numbers > 0, got {value!r}.")
+    out = tuple(chk.positive(v, f"{field}[{i}]") for i, v in enumerate(value))
+    if len(set(out)) != len(out):
+        chk.fail(field, f"has repeated values: {list(out)}.")
+    return out
 
 
-def _is_number(value: Any) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
-
-
-def _parse_event(chk: _Check, entry: Any, field: str, scenario) -> EventDraw:
+def _parse_event(chk: FieldChecker, entry: Any, field: str, scenario) -> EventDraw:
     if not isinstance(entry, Mapping):
         chk.fail(field, f"must be a table {{fault = ..., time = ...}}, got {entry!r}.")
     chk.keys(entry, field, _EVENT_KEYS)
@@ -175,7 +130,7 @@ def _parse_event(chk: _Check, entry: Any, field: str, scenario) -> EventDraw:
         )
     t = entry["time"]
     dur = float(scenario.duration)
-    if _is_number(t):
+    if is_number(t):
         lo = hi = chk.number(t, f"{field}.time")
     elif isinstance(t, list | tuple) and len(t) == 2:
         lo = chk.number(t[0], f"{field}.time[0]")
@@ -192,18 +147,12 @@ def _parse_event(chk: _Check, entry: Any, field: str, scenario) -> EventDraw:
             f"{field}.time",
             f"onset {t!r} s is outside the run [0, {dur!r}) s (duration of the scenario).",
         )
-    N = scenario.num_steps
-    if int(round(lo / scenario.dt)) >= N:  # as the scenario file's [[events]].time
-        chk.fail(
-            f"{field}.time",
-            f"onset {lo!r} s acts from sample round(time / dt) = {int(round(lo / scenario.dt))}, "
-            f"but the run's samples are 0..{N - 1}: the fault would never occur.",
-        )
-    mag = chk.number(entry.get("magnitude", 1.0), f"{field}.magnitude", positive=True)
+    chk.onset_step(lo, f"{field}.time", scenario.dt, scenario.num_steps)
+    mag = chk.positive(entry.get("magnitude", 1.0), f"{field}.magnitude")
     return EventDraw(str(fault), (lo, hi), mag)
 
 
-def _parse_cases(chk: _Check, value: Any, scenario) -> tuple[CaseSpec, ...]:
+def _parse_cases(chk: FieldChecker, value: Any, scenario) -> tuple[CaseSpec, ...]:
     field = "[sweep].cases"
     if not isinstance(value, list | tuple):
         chk.fail(field, f"must be an array of tables ([[sweep.cases]]), got {value!r}.")
@@ -270,7 +219,7 @@ def sweep_spec(
     Raises:
         ScenarioError: naming the field (``[sweep].runs``) and what is expected.
     """
-    chk = _Check(getattr(scenario, "source", None))
+    chk = FieldChecker(getattr(scenario, "source", None))
     table = scenario.sweep if scenario.sweep is not None else {}
     if not isinstance(table, Mapping):
         chk.fail("[sweep]", f"must be a table, got {table!r}.")
@@ -282,9 +231,9 @@ def sweep_spec(
         return table.get(name), f"[sweep].{name}"
 
     v, f = pick("runs", runs)
-    runs_ = 100 if v is None else chk.integer(v, f, 1)
+    runs_ = 100 if v is None else chk.integer(v, f, low=1)
     v, f = pick("seed", seed)
-    seed_ = int(scenario.seed) if v is None else chk.integer(v, f, 0, MAX_SEED)
+    seed_ = int(scenario.seed) if v is None else chk.integer(v, f, low=0, high=MAX_SEED)
     v, f = pick("methods", methods)
     if v is None:
         methods_ = (scenario.filter.method,)
@@ -294,21 +243,21 @@ def sweep_spec(
         if not isinstance(v, list | tuple) or not v:
             chk.fail(f, f"must be a non-empty array of 'uimm' / 'imm', got {v!r}.")
         for i, m in enumerate(v):
-            if m not in ("uimm", "imm"):
+            if m not in METHODS:
                 chk.fail(f"{f}[{i}]", f"must be 'uimm' or 'imm', got {m!r}.")
         if len(set(v)) != len(v):
             chk.fail(f, f"has repeated methods: {list(v)}.")
         methods_ = tuple(v)
     v, f = pick("magnitudes", magnitudes)
-    mags = (1.0,) if v is None else chk.numbers(list(v) if not _is_number(v) else v, f)
+    mags = (1.0,) if v is None else _positive_numbers(chk, list(v) if not is_number(v) else v, f)
     v, f = pick("noise_scales", noise_scales)
-    noises = (1.0,) if v is None else chk.numbers(list(v) if not _is_number(v) else v, f)
+    noises = (1.0,) if v is None else _positive_numbers(chk, list(v) if not is_number(v) else v, f)
     v, f = pick("fault_free", fault_free)
     ff = True if v is None else chk.boolean(v, f)
     v, f = pick("batch", batch)
-    batch_ = DEFAULT_BATCH if v is None else chk.integer(v, f, 1)
+    batch_ = DEFAULT_BATCH if v is None else chk.integer(v, f, low=1)
     v, f = pick("chunk", chunk)
-    chunk_ = None if v is None else chk.integer(v, f, 1)
+    chunk_ = None if v is None else chk.integer(v, f, low=1)
     v = cases if cases is not None else table.get("cases")
     if v is None:
         evs = tuple(

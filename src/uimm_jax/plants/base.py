@@ -1,4 +1,4 @@
-"""Plant models: named parameters, fault tables and the model registry.
+"""Plant classes: named parameters, fault tables, linear and non-linear models.
 
 A *plant* is what a filter bank is built from: pure functions of the state ``x``,
 the input ``u`` and a named parameter vector ``theta``, plus the nominal parameter
@@ -10,17 +10,12 @@ Two families are supported:
 * :class:`LinearPlant` -- ``dx/dt = A(theta) x + B(theta) u`` (or the discrete-time
   ``x[k+1] = A x[k] + B u[k]``) and ``y = C(theta) x + d(theta)``.  Continuous
   models are discretised exactly by zero-order hold (matrix exponential of the
-  augmented matrix, see :mod:`uimm_jax.discretize`), so the EKF is the exact KF.
+  augmented matrix, :func:`uimm_jax.engine.dynamics.zoh`), so the EKF is the exact KF.
 * :class:`NonlinearPlant` -- ``f(x, u, theta)`` (a discrete map, or a continuous
   vector field integrated with ``substeps`` classical RK4 steps per sample) and
   ``h(x, theta)``.  The EKF linearises both with ``jax.jacfwd``.
 
-Users add their own plant without editing the package::
-
-    plant = uimm_jax.LinearPlant(name="my_motor", ..., matrices=my_fn)
-    uimm_jax.register_plant(plant)
-
-after which scenario files can say ``[plant] model = "my_motor"``.
+Plants are made available to scenario files by :mod:`uimm_jax.plants.registry`.
 """
 
 from __future__ import annotations
@@ -31,15 +26,9 @@ from typing import Any, Literal
 
 import numpy as np
 
-__all__ = [
-    "Fault",
-    "LinearPlant",
-    "NonlinearPlant",
-    "Plant",
-    "get_plant",
-    "list_plants",
-    "register_plant",
-]
+from uimm_jax.plants.checks import check_plant_structure
+
+__all__ = ["Fault", "LinearPlant", "NonlinearPlant", "Plant"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,8 +63,6 @@ class _PlantBase:
     positive_params: tuple[str, ...] = ()
 
     def __post_init__(self):
-        from uimm_jax.validation import check_plant_structure
-
         check_plant_structure(self)
         if len(self.param_names) != len(self.nominal_values):
             raise ValueError(
@@ -202,48 +189,3 @@ class NonlinearPlant(_PlantBase):
 
 
 Plant = LinearPlant | NonlinearPlant
-
-_REGISTRY: dict[str, Plant] = {}
-
-
-def register_plant(plant: Plant, *, overwrite: bool = False) -> Plant:
-    """Make ``plant`` available to scenario files under ``plant.name``.
-
-    Args:
-        plant: a :class:`LinearPlant` or :class:`NonlinearPlant`.
-        overwrite: replace an existing plant of the same name instead of raising.
-
-    Returns:
-        The plant, so the call can be used as an expression.
-    """
-    if not isinstance(plant, LinearPlant | NonlinearPlant):
-        raise TypeError("register_plant expects a LinearPlant or NonlinearPlant")
-    if plant.name in _REGISTRY and not overwrite:
-        raise ValueError(
-            f"a plant named {plant.name!r} is already registered; pass overwrite=True to replace it"
-        )
-    _REGISTRY[plant.name] = plant
-    return plant
-
-
-def get_plant(name: str) -> Plant:
-    """Look a registered plant up by name, with a helpful error if it is unknown."""
-    _ensure_builtins()
-    try:
-        return _REGISTRY[name]
-    except KeyError:
-        raise ValueError(
-            f"unknown plant model {name!r}; registered models: {', '.join(sorted(_REGISTRY))}. "
-            "Register your own with uimm_jax.register_plant()."
-        ) from None
-
-
-def list_plants() -> list[str]:
-    """Names of all registered plants."""
-    _ensure_builtins()
-    return sorted(_REGISTRY)
-
-
-def _ensure_builtins() -> None:
-    # Imported lazily so that this module stays free of the plant definitions.
-    from uimm_jax import hydraulic_actuator  # noqa: F401

@@ -48,7 +48,6 @@ __all__ = [
     "degrade_measurements",
     "load_measurements",
     "measured_data",
-    "truth_for_measurements",
 ]
 
 #: A ``t`` column may deviate from ``(k + 1) dt`` by this fraction of ``dt``.
@@ -121,7 +120,7 @@ def _plant_of(scenario):
     plant = getattr(scenario, "plant", None)
     if plant is None or not hasattr(plant, "output_names"):
         raise TypeError(
-            "scenario: expected a uimm_jax.scenarios.Scenario (load it with "
+            "scenario: expected a uimm_jax.Scenario (load it with "
             f"uimm_jax.load_scenario), got {type(scenario).__name__}"
         )
     return plant
@@ -141,7 +140,7 @@ def measured_data(scenario, y, u=None, t=None, *, source: str = "<array>") -> Me
     """Validate arrays against a scenario and pack them into a :class:`MeasuredData`.
 
     Args:
-        scenario: the :class:`~uimm_jax.scenarios.Scenario` (its plant gives ``m``, ``p``
+        scenario: the :class:`~uimm_jax.scenario.spec.Scenario` (its plant gives ``m``, ``p``
             and its ``dt`` the time grid).
         y: ``(N, m)`` measurements (``(N,)`` when ``m = 1``); NaN = missing, inf refused.
         u: optional ``(N, p)`` inputs (``(N,)`` when ``p = 1``), all finite.
@@ -253,7 +252,7 @@ def load_measurements(path, scenario) -> MeasuredData:
 
     Args:
         path: the file (``.csv``, ``.npy`` or ``.npz``).
-        scenario: the :class:`~uimm_jax.scenarios.Scenario` the data belongs to.
+        scenario: the :class:`~uimm_jax.scenario.spec.Scenario` the data belongs to.
 
     Returns:
         A :class:`MeasuredData`.
@@ -476,42 +475,8 @@ def _parse_cell(cell: str, column: str, outputs, source: str, lineno: int) -> fl
 
 
 # --------------------------------------------------------------------------------------
-# Runner glue and robustness helpers
+# Robustness helper
 # --------------------------------------------------------------------------------------
-
-
-def truth_for_measurements(setup, measurements) -> dict[str, np.ndarray]:
-    """The "truth" record of a run on measured data (what the runner's summary needs).
-
-    The true fault set at each sample follows the scenario's ``[[events]]``; the true
-    states are unknown (NaN).  Inputs come from the data when it has them, else from the
-    scenario's input signal.
-
-    Args:
-        setup: the :class:`~uimm_jax.runner.RunSetup`.
-        measurements: a :class:`MeasuredData` or an ``(N, m)`` array.
-
-    Returns:
-        dict with ``u`` (N, p), ``x`` (N, n) NaN, ``y`` (N, m), ``truth`` (N,) fault-set
-        codes and ``t`` (N,), like :func:`uimm_jax.runner.simulate_scenario`.
-    """
-    from uimm_jax.runner import scenario_inputs
-
-    sc = setup.scenario
-    data = (
-        measurements
-        if isinstance(measurements, MeasuredData)
-        else measured_data(sc, measurements, source="measurements")
-    )
-    N = data.num_steps
-    u = data.u if data.u is not None else scenario_inputs(sc, N)
-    codes = np.zeros(N, np.int32)
-    names = list(setup.table.names)
-    for ev, k_ev in zip(sc.events, setup.event_steps, strict=True):
-        codes[int(k_ev) :] |= np.int32(1 << names.index(ev.fault))
-    t = (np.arange(N) + 1) * float(sc.dt)
-    x = np.full((N, sc.plant.state_dim), np.nan)
-    return {"u": u, "x": x, "y": data.y, "truth": codes, "t": t}
 
 
 def degrade_measurements(

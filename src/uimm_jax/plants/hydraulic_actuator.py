@@ -45,7 +45,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from uimm_jax.models import Fault, LinearPlant, register_plant
+from uimm_jax.plants.base import Fault, LinearPlant
 
 __all__ = ["HYDRAULIC_ACTUATOR", "PAPER_FAULTS", "EXTRA_FAULTS"]
 
@@ -99,20 +99,18 @@ def _matrices(p):
     return A, B, C, d
 
 
-HYDRAULIC_ACTUATOR = register_plant(
-    LinearPlant(
-        name="hydraulic_actuator",
-        state_names=("x_p", "v_p", "p_h"),
-        input_names=("i_v",),
-        output_names=("x_p", "v_p", "p_h"),
-        param_names=tuple(_PARAMS),
-        nominal_values=tuple(_PARAMS.values()),
-        faults=PAPER_FAULTS,
-        extra_faults=EXTRA_FAULTS,
-        # divisors and gains of eq. (2); Kc, Cl, Bh, Kh and the biases may be zero
-        positive_params=("mh", "Ah", "Vh", "Eh", "Kv", "Kq"),
-        time="continuous",
-        description="Aviation hydraulic actuator, Sun, Wang & Lin (2020) eq. (2), Table 1",
-        matrices=_matrices,
-    )
+HYDRAULIC_ACTUATOR = LinearPlant(
+    name="hydraulic_actuator",
+    state_names=("x_p", "v_p", "p_h"),
+    input_names=("i_v",),
+    output_names=("x_p", "v_p", "p_h"),
+    param_names=tuple(_PARAMS),
+    nominal_values=tuple(_PARAMS.values()),
+    faults=PAPER_FAULTS,
+    extra_faults=EXTRA_FAULTS,
+    # divisors and gains of eq. (2); Kc, Cl, Bh, Kh and the biases may be zero
+    positive_params=("mh", "Ah", "Vh", "Eh", "Kv", "Kq"),
+    time="continuous",
+    description="Aviation hydraulic actuator, Sun, Wang & Lin (2020) eq. (2), Table 1",
+    matrices=_matrices,
 )

@@ -1,26 +1,54 @@
-"""Input checks shared by the Python API, scenario files and the CLI.
+"""Generic input checks shared by every layer: arrays, numbers, seeds, paths.
 
 Every check raises ``ValueError`` with a message that names the argument (or scenario
 field), says what was expected and how to fix it.  Checks run on concrete (NumPy) values,
-outside ``jit``; traced values are passed through unchecked.
+outside ``jit``; traced values are passed through unchecked.  This module imports nothing
+of the package but :mod:`uimm_jax.errors`, so that the engine, the plants, the scenario
+parser and the studies can all use it.
+
+The ``*_problem`` helpers say what is wrong with a value (or return ``None``); they are
+the one definition of an integer range or a positive number, worded by each caller
+(``"seed: expected ..."`` here, ``"[sweep].runs: must be ..."`` in the scenario parser).
 """
 
 from __future__ import annotations
 
+import datetime
+import numbers
 import warnings
-import weakref
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from uimm_jax.errors import UIMMWarning
 
 __all__ = [
+    "MAX_INT32",
+    "MAX_SEED",
+    "ROW_SUM_TOL",
     "as_float_array",
+    "check_bank",
     "check_covariance",
+    "check_finite",
+    "check_float_dtype",
+    "check_gate",
+    "check_inputs",
+    "check_measurements",
+    "check_no_inf",
+    "check_out_dir",
+    "check_positive_finite",
+    "check_positive_int",
     "check_probabilities",
+    "check_seed",
     "check_shape",
     "check_stochastic",
+    "integer_problem",
+    "is_number",
+    "positive_problem",
+    "probability_problem",
+    "type_name",
 ]
 
 ROW_SUM_TOL = 1e-9
@@ -110,17 +138,11 @@ def check_probabilities(p, size: int, name: str = "initial_mode_probs") -> np.nd
     a = as_float_array(p, name)
     check_shape(a, (size,), name, f"one probability per model ({size} models)")
     check_finite(a, name)
-    if np.any(a < 0):
-        raise ValueError(f"{name}: entries must be >= 0, got {a.tolist()}")
-    with np.errstate(over="ignore"):  # an overflowing sum is refused below
-        s = a.sum()
-    if s <= 0:
-        raise ValueError(f"{name}: entries sum to {s}; at least one must be positive")
-    if not np.isfinite(s):
-        raise ValueError(
-            f"{name}: entries sum to {s} (overflow); give probabilities (numbers in [0, 1], "
-            "normalised with a warning if they do not sum to 1)"
-        )
+    bad = probability_problem(a)
+    if bad:
+        detail, i = bad
+        raise ValueError(f"{name}: {detail}" + ("" if i is None else f" (entry {i})"))
+    s = a.sum()
     if abs(s - 1.0) > ROW_SUM_TOL:
         warnings.warn(
             f"{name} sum to {s:.12g}, not 1: normalised to {(a / s).round(6).tolist()}",
@@ -129,6 +151,29 @@ def check_probabilities(p, size: int, name: str = "initial_mode_probs") -> np.nd
         )
         a = a / s
     return a
+
+
+def probability_problem(a: np.ndarray) -> tuple[str, int | None] | None:
+    """What is wrong with finite ``a`` as (unnormalised) probabilities, or ``None``.
+
+    Returns:
+        ``(detail, entry)``: ``entry`` is the first negative entry's index, or ``None``
+        when the sum is at fault (zero, or overflowing).
+    """
+    neg = np.flatnonzero(a < 0)
+    if neg.size:
+        return f"probabilities must be >= 0, got {float(a[neg[0]])!r}", int(neg[0])
+    with np.errstate(over="ignore"):  # an overflowing sum is refused
+        total = float(np.sum(a))
+    if total <= 0.0:
+        return "all probabilities are zero; at least one must be > 0", None
+    if not np.isfinite(total):
+        return (
+            f"entries sum to {total!r} (overflow); give probabilities (numbers in [0, 1], "
+            "normalised with a warning if they do not sum to 1)",
+            None,
+        )
+    return None
 
 
 def check_covariance(c, n: int, name: str, *, definite: bool = False) -> np.ndarray:
@@ -153,9 +198,52 @@ def check_covariance(c, n: int, name: str, *, definite: bool = False) -> np.ndar
     return a
 
 
-# --------------------------------------------------------------------------------------
-# Entry-point checks of the Python API (issue 6): one call at each public entry point.
-# --------------------------------------------------------------------------------------
+def is_number(value: Any) -> bool:
+    """A real number, booleans excluded."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def type_name(value: Any) -> str:
+    """How a value reads in an error message: ``a float (2.5)``, ``a table``."""
+    if isinstance(value, bool):
+        return f"a boolean ({str(value).lower()})"
+    if isinstance(value, str):
+        return f"a string ({value!r})"
+    if isinstance(value, numbers.Integral):
+        return f"an integer ({int(value)})"
+    if isinstance(value, numbers.Real):
+        return f"a float ({float(value)!r})"
+    if isinstance(value, list | tuple):
+        return "an array"
+    if isinstance(value, Mapping):
+        return "a table"
+    if isinstance(value, datetime.date | datetime.time):
+        return f"a date/time ({value.isoformat()})"
+    return f"a {type(value).__name__}"
+
+
+def integer_problem(value: Any, low: int, high: int | None = None) -> str | None:
+    """``None`` if ``value`` is an integer in ``[low, high]``, else what was expected.
+
+    Returns, e.g., ``"an integer >= 1, got 0"`` or ``"an integer in [0, 9], got a float
+    (2.5)"`` (booleans are not integers).
+    """
+    rng = f">= {low}" if high is None else f"in [{low}, {high}]"
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        return f"an integer {rng}, got {type_name(value)}"
+    if int(value) < low or (high is not None and int(value) > high):
+        return f"an integer {rng}, got {int(value)}"
+    return None
+
+
+def positive_problem(value: Any) -> str | None:
+    """``None`` if ``value`` is a finite number > 0, else what was expected."""
+    if not is_number(value):
+        return f"a number > 0, got {type_name(value)}"
+    v = float(value)
+    if not (np.isfinite(v) and v > 0):
+        return f"a finite number > 0, got {v!r}"
+    return None
 
 
 def check_gate(gate, name: str = "gate") -> float | None:
@@ -177,38 +265,15 @@ def check_gate(gate, name: str = "gate") -> float | None:
 
 def check_positive_int(value, name: str, minimum: int = 1, maximum: int | None = None) -> int:
     """An integer ``>= minimum`` (and ``<= maximum`` if given; booleans refused)."""
-    rng = f">= {minimum}" if maximum is None else f"in [{minimum}, {maximum}]"
-    if isinstance(value, bool) or not isinstance(value, int | np.integer):
-        raise ValueError(f"{name}: expected an integer {rng}, got {type(value).__name__} {value!r}")
-    if int(value) < minimum or (maximum is not None and int(value) > maximum):
-        raise ValueError(f"{name}: expected an integer {rng}, got {int(value)}")
+    problem = integer_problem(value, minimum, maximum)
+    if problem:
+        raise ValueError(f"{name}: expected {problem}")
     return int(value)
 
 
 def check_seed(seed, name: str = "seed") -> int | None:
     """``None`` or an integer in ``[0, MAX_SEED]`` (as a scenario file's ``seed``)."""
     return None if seed is None else check_positive_int(seed, name, 0, MAX_SEED)
-
-
-def check_scenario(scenario, name: str = "scenario") -> None:
-    """Require a :class:`~uimm_jax.scenarios.Scenario` (not a path or a dict)."""
-    from uimm_jax.scenarios import Scenario
-
-    if not isinstance(scenario, Scenario):
-        hint = (
-            "load a file with uimm_jax.load_scenario(path)"
-            if isinstance(scenario, str | bytes) or hasattr(scenario, "__fspath__")
-            else "validate a dict with uimm_jax.parse_scenario(d)"
-            if isinstance(scenario, dict)
-            else "build one with uimm_jax.load_scenario or uimm_jax.parse_scenario"
-        )
-        raise TypeError(f"{name}: expected a Scenario, got {type(scenario).__name__}; {hint}")
-
-
-def check_method(method, name: str = "method") -> None:
-    """``"uimm"`` or ``"imm"``."""
-    if method not in ("uimm", "imm"):
-        raise ValueError(f"{name}: expected 'uimm' or 'imm', got {method!r}")
 
 
 def check_float_dtype(dtype, name: str = "dtype"):
@@ -224,12 +289,10 @@ def check_float_dtype(dtype, name: str = "dtype"):
 
 def check_positive_finite(value, name: str) -> float:
     """A finite number > 0."""
-    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
-        raise ValueError(f"{name}: expected a number > 0, got {type(value).__name__} {value!r}")
-    v = float(value)
-    if not (np.isfinite(v) and v > 0):
-        raise ValueError(f"{name}: expected a finite number > 0, got {v!r}")
-    return v
+    problem = positive_problem(value)
+    if problem:
+        raise ValueError(f"{name}: expected {problem}")
+    return float(value)
 
 
 def check_measurements(y, m: int, name: str = "measurements") -> np.ndarray:
@@ -278,142 +341,6 @@ def check_inputs(u, N: int, p: int, name: str = "inputs") -> np.ndarray:
             "missing: the filter needs them to predict)"
         )
     return a
-
-
-def _check_names(names, what: str, plant: str, *, allow_empty: bool) -> None:
-    if isinstance(names, str) or not isinstance(names, tuple | list):
-        raise ValueError(
-            f"plant {plant!r}: {what} must be a tuple of strings, got {type(names).__name__} "
-            f"{names!r}" + ("; write ('x',) for a single name" if isinstance(names, str) else "")
-        )
-    if not names and not allow_empty:
-        raise ValueError(f"plant {plant!r}: {what} is empty; give at least one name")
-    for s in names:
-        if not isinstance(s, str) or not s:
-            raise ValueError(f"plant {plant!r}: {what} must be non-empty strings, got {s!r}")
-    if len(set(names)) != len(names):
-        dup = sorted({s for s in names if list(names).count(s) > 1})
-        raise ValueError(f"plant {plant!r}: {what} must be unique; repeated: {', '.join(dup)}")
-
-
-def check_plant_structure(plant) -> None:
-    """Cheap structural checks of a plant definition (no JAX): names, values, faults."""
-    if not isinstance(plant.name, str) or not plant.name:
-        raise ValueError(f"plant name: expected a non-empty string, got {plant.name!r}")
-    _check_names(plant.state_names, "state_names", plant.name, allow_empty=False)
-    _check_names(plant.input_names, "input_names", plant.name, allow_empty=True)
-    _check_names(plant.output_names, "output_names", plant.name, allow_empty=False)
-    _check_names(plant.param_names, "param_names", plant.name, allow_empty=True)
-    for pname, v in zip(plant.param_names, plant.nominal_values, strict=False):
-        if isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating):
-            raise ValueError(
-                f"plant {plant.name!r}: nominal value of {pname!r} must be a number, got {v!r}"
-            )
-        if not np.isfinite(float(v)):
-            raise ValueError(
-                f"plant {plant.name!r}: nominal value of {pname!r} is {v}; it must be finite"
-            )
-    for fault in tuple(plant.faults) + tuple(plant.extra_faults):
-        for pname, v in dict(fault.values).items():
-            if isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating):
-                raise ValueError(
-                    f"plant {plant.name!r}: fault {fault.name!r}: value of {pname!r} must be "
-                    f"a number, got {v!r}"
-                )
-            if not np.isfinite(float(v)):
-                raise ValueError(
-                    f"plant {plant.name!r}: fault {fault.name!r}: value of {pname!r} is {v}; "
-                    "it must be finite"
-                )
-
-
-def check_plant_functions(plant) -> None:
-    """Evaluate a plant's functions once at the nominal parameters; check shapes and values.
-
-    A ``LinearPlant``'s ``matrices(p)`` must return ``(A, B, C, d)`` of shapes ``(n, n)``,
-    ``(n, p)``, ``(m, n)``, ``(m,)``, finite; a ``NonlinearPlant``'s ``f(x, u, p)`` must
-    return ``(n,)`` and ``h(x, p)`` ``(m,)`` at ``x = 0``, ``u = 0``.  Uses JAX: called at
-    first use (:func:`uimm_jax.runner.setup_scenario`), not at registration.
-    """
-    import jax
-    import jax.numpy as jnp
-
-    n, p, m = len(plant.state_names), len(plant.input_names), len(plant.output_names)
-    with jax.ensure_compile_time_eval():
-        pr = plant.params(jnp.asarray(np.asarray(plant.nominal_values, np.float64)))
-        if hasattr(plant, "matrices"):
-            try:
-                out = plant.matrices(pr)
-            except Exception as err:  # noqa: BLE001 - report the user's error with context
-                raise ValueError(
-                    f"plant {plant.name!r}: matrices(p) failed at the nominal parameters: "
-                    f"{type(err).__name__}: {err}"
-                ) from err
-            if not isinstance(out, tuple | list) or len(out) != 4:
-                raise ValueError(
-                    f"plant {plant.name!r}: matrices(p) must return a tuple (A, B, C, d), got "
-                    f"{type(out).__name__}"
-                )
-            wants = {"A": (n, n), "B": (n, p), "C": (m, n), "d": (m,)}
-            for (label, want), val in zip(wants.items(), out, strict=True):
-                a = np.asarray(val, np.float64)
-                if a.shape != want and not (label == "B" and p == 0 and a.size == 0):
-                    raise ValueError(
-                        f"plant {plant.name!r}: matrices(p) returned {label} of shape "
-                        f"{a.shape}; expected {want} (n = {n} states, p = {p} inputs, "
-                        f"m = {m} outputs)"
-                    )
-                if not np.all(np.isfinite(a)):
-                    raise ValueError(
-                        f"plant {plant.name!r}: matrices(p) returned a non-finite {label} at "
-                        "the nominal parameters"
-                    )
-        else:
-            x0 = jnp.zeros((n,))
-            u0 = jnp.zeros((p,))
-            for label, fn, args, want in (
-                ("f(x, u, p)", plant.f, (x0, u0, pr), (n,)),
-                ("h(x, p)", plant.h, (x0, pr), (m,)),
-            ):
-                try:
-                    a = np.asarray(fn(*args), np.float64)
-                except Exception as err:  # noqa: BLE001
-                    raise ValueError(
-                        f"plant {plant.name!r}: {label} failed at x = 0, u = 0 and the nominal "
-                        f"parameters: {type(err).__name__}: {err}"
-                    ) from err
-                if a.shape != want:
-                    raise ValueError(
-                        f"plant {plant.name!r}: {label} returned shape {a.shape}; expected {want}"
-                    )
-
-
-_CHECKED_PLANTS: weakref.WeakSet = weakref.WeakSet()
-
-
-def check_setup_args(scenario, method, dtype, magnitude_scale) -> None:
-    """Arguments of :func:`uimm_jax.runner.setup_scenario` (and its plant, once per plant)."""
-    check_scenario(scenario)
-    if method is not None:
-        check_method(method)
-    if dtype is not None:
-        check_float_dtype(dtype)
-    check_positive_finite(magnitude_scale, "magnitude_scale")
-    plant = scenario.plant
-    if plant not in _CHECKED_PLANTS:
-        check_plant_structure(plant)
-        check_plant_functions(plant)
-        _CHECKED_PLANTS.add(plant)
-
-
-def check_run_data(setup, y, u, chunk) -> tuple[np.ndarray, np.ndarray | None]:
-    """Arguments of :func:`uimm_jax.runner.filter_measurements`: ``(N, m)`` / ``(N, p)``."""
-    plant = setup.scenario.plant
-    check_positive_int(chunk, "chunk")
-    y = check_measurements(y, plant.output_dim)
-    if u is not None:
-        u = check_inputs(u, y.shape[0], plant.input_dim)
-    return y, u
 
 
 def check_out_dir(path, name: str = "--out") -> Path:
