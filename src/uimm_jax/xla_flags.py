@@ -1,22 +1,23 @@
-"""XLA CPU flags that make the filter's time loop fast, and how to opt out.
+"""XLA CPU flags that make the filter's time loop fast: applied at import, with an opt-out.
 
 Two flags matter on the CPU (measured in benchmarks/README.md):
 
 * ``--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=<large>`` lets
   XLA CPU hoist a whole ``lax.scan`` into one compiled kernel when its body has no dots
   or custom calls -- the engine's bank algebra is written that way
-  (:mod:`uimm_jax.engine._wide`, :mod:`uimm_jax.engine._smallmat`).  Without it each step pays
-  per-kernel dispatch (measured 4x slower for the actuator bank; 30x before the kernel
-  was restructured into fewer, wider operations).
+  (:mod:`uimm_jax.engine._block`).  Without it each step pays per-kernel dispatch:
+  measured 6.5x slower for the block-form UIMM step (2.0 against 0.31 us/step).
 * ``--xla_cpu_experimental_ynn_fusion_type=`` (empty) turns off the YNNPACK fusions that
   XLA CPU otherwise picks for batched multiply-reduce patterns from a batch of about 64
   runs, where throughput collapses.
 
-XLA reads ``XLA_FLAGS`` once, when JAX's backend starts, so they must be set before the
-first JAX computation.  The library never sets them at import; the CLI, the benchmarks
-and the tests call :func:`apply_recommended_xla_flags` first.  Opt out by setting the
-environment variable ``UIMM_JAX_NO_XLA_FLAGS=1``; user code may call the function itself
-(before touching JAX) or set ``XLA_FLAGS`` by hand.
+Both are CPU-only; other backends ignore them.  XLA reads ``XLA_FLAGS`` once, when JAX's
+backend starts, and a per-computation compiler option cannot carry the first (JAX 0.10
+rejects ``xla_backend_extra_options`` in ``compiler_options``).  So ``import uimm_jax``
+appends the missing flags to ``XLA_FLAGS`` -- only while no JAX backend has started, and
+never touching ``jax.config``.  Opt out by setting ``UIMM_JAX_NO_XLA_FLAGS=1`` before the
+import.  When the engine then runs on a CPU backend that started without the flags (JAX
+was used before ``uimm_jax`` was imported), :func:`warn_if_slow` warns once.
 
 This module does not import JAX.
 """
@@ -25,13 +26,21 @@ from __future__ import annotations
 
 import os
 import sys
+import warnings
 
-__all__ = ["RECOMMENDED_XLA_FLAGS", "apply_recommended_xla_flags"]
+__all__ = [
+    "RECOMMENDED_XLA_FLAGS",
+    "apply_recommended_xla_flags",
+    "flags_in_effect",
+    "warn_if_slow",
+]
 
 RECOMMENDED_XLA_FLAGS = (
     "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=100000000000",
     "--xla_cpu_experimental_ynn_fusion_type=",
 )
+
+_warned = False
 
 
 def _backend_started() -> bool:
@@ -42,6 +51,16 @@ def _backend_started() -> bool:
     return bool(backends)
 
 
+def _opted_out() -> bool:
+    return os.environ.get("UIMM_JAX_NO_XLA_FLAGS", "") not in ("", "0")
+
+
+def flags_in_effect() -> bool:
+    """True when ``XLA_FLAGS`` holds every recommended flag."""
+    current = os.environ.get("XLA_FLAGS", "")
+    return all(f.split("=")[0] in current for f in RECOMMENDED_XLA_FLAGS)
+
+
 def apply_recommended_xla_flags(*, force: bool = False) -> bool:
     """Append the recommended flags to ``XLA_FLAGS`` unless opted out or already set.
 
@@ -50,16 +69,42 @@ def apply_recommended_xla_flags(*, force: bool = False) -> bool:
 
     Returns:
         True if the flags are in effect for the backend that will start (False when opted
-        out, or when JAX's backend had already started -- then nothing changes).
+        out, or when JAX's backend had already started without them -- then nothing
+        changes).
     """
-    if not force and os.environ.get("UIMM_JAX_NO_XLA_FLAGS", "") not in ("", "0"):
+    if not force and _opted_out():
         return False
     if _backend_started():
-        return all(
-            f.split("=")[0] in os.environ.get("XLA_FLAGS", "") for f in RECOMMENDED_XLA_FLAGS
-        )
+        return flags_in_effect()
     current = os.environ.get("XLA_FLAGS", "")
     extra = [f for f in RECOMMENDED_XLA_FLAGS if f.split("=")[0] not in current]
     if extra:
         os.environ["XLA_FLAGS"] = " ".join([current, *extra]).strip()
     return True
+
+
+def warn_if_slow() -> None:
+    """Warn once if the engine runs on a CPU backend that started without the flags.
+
+    Called by the time-loop drivers; silent when opted out (the user chose), on other
+    backends, or when the flags are in effect.
+    """
+    global _warned
+    if _warned or _opted_out() or flags_in_effect():
+        return
+    import jax
+
+    if jax.default_backend() != "cpu":
+        return
+    _warned = True
+    from uimm_jax.errors import UIMMWarning
+
+    warnings.warn(
+        "JAX's CPU backend started before uimm_jax could set its XLA flags, so the time "
+        "loop runs several times slower (one kernel per step). Import uimm_jax before "
+        "using JAX, or set XLA_FLAGS to include "
+        + " ".join(RECOMMENDED_XLA_FLAGS)
+        + " (set UIMM_JAX_NO_XLA_FLAGS=1 to silence this).",
+        UIMMWarning,
+        stacklevel=3,
+    )
