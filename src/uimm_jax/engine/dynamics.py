@@ -1,33 +1,64 @@
 """Per-model dynamics for a filter bank: discretisation, prediction and linearisation.
 
-A *dynamics* object turns a plant into what the bank kernel needs at each step:
+A *dynamics* object (the :class:`Dynamics` protocol) turns a plant into what the bank
+kernel needs at each step:
 
 * ``prepare(theta) -> cache`` -- once per parameter set (at start-up, and again only when
   UIMM replaces fault parameters).  For a continuous linear plant this is the exact
   zero-order-hold discretisation ``[[Ad, Bd], [0, I]] = expm([[A, B], [0, 0]] T)`` (paper
-  eq. 10), computed elementwise (:func:`uimm_jax.engine._smallmat.expm`) so that it may run
+  eq. 10), in block arithmetic (:func:`uimm_jax.engine._block.expm`) so that it may run
   inside the hoisted time loop under ``lax.cond``.
 * ``predict(cache, x, u) -> (x_pred, F)`` -- paper eqs. 18-19.
 * ``observe(cache, x_pred) -> (y_pred, H)`` -- paper eqs. 18, 20.
 
-Arrays are batch-minor: ``theta`` is ``(P, *batch)``, the cache leaves carry the matrix
-indices first and the batch (runs..., models) last; ``x`` and the results are nested
-arrays with the same layout (matrix axes first, batch last; :mod:`uimm_jax.engine._wide`).
+Arrays carry the matrix indices first and the batch (models, then runs) last: ``theta``
+is ``(P, *batch)``, cache leaves ``(r, c, *batch)``, ``x`` ``(n, *batch)``.
+
+The engine knows no plant classes: :class:`LinearDynamics` and :class:`NonlinearDynamics`
+use a plant by its methods (``params``, ``matrices`` or ``f``/``h``, ...); the plants
+layer picks one (:func:`uimm_jax.plants.dynamics.make_dynamics`).
 """
 
 from __future__ import annotations
 
+import abc
 import math
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Protocol, final, runtime_checkable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from uimm_jax.engine import _smallmat as sm
-from uimm_jax.engine import _wide as wd
+from uimm_jax.engine import _block as bk
 
-__all__ = ["LinearCache", "LinearDynamics", "NonlinearDynamics", "zoh"]
+__all__ = [
+    "Dynamics",
+    "LinearCache",
+    "LinearDynamics",
+    "MatrixBankDynamics",
+    "NonlinearDynamics",
+    "zoh",
+]
+
+
+@runtime_checkable
+class Dynamics(Protocol):
+    """What the filter bank needs from a plant (see the module docstring).
+
+    Attributes:
+        linear: True when ``predict``/``observe`` are exact linear maps (KF, not EKF).
+    """
+
+    linear: bool
+
+    def prepare(self, theta: jax.Array) -> Any:
+        """The cache of every model for parameters ``theta (P, *batch)``."""
+
+    def predict(self, cache: Any, x: jax.Array, u: jax.Array) -> tuple[jax.Array, Any]:
+        """``(x_pred, F)``: the predicted means and the transition Jacobian (eqs. 18-19)."""
+
+    def observe(self, cache: Any, x: jax.Array) -> tuple[jax.Array, Any]:
+        """``(y_pred, H)``: the predicted measurements and their Jacobian (eqs. 18, 20)."""
 
 
 class LinearCache(NamedTuple):
@@ -63,12 +94,15 @@ def _batched_call(fn, theta: jax.Array, n_out: int):
     return res
 
 
-def zoh(A: list, B: list, dt: float, *, balance=None, squarings: int = 0) -> tuple[list, list]:
-    """Exact zero-order-hold discretisation of ``(A, B)`` (nested entries).
+def zoh(A: jax.Array, B: jax.Array, dt: float, *, balance=None, squarings: int = 0):
+    """Exact zero-order-hold discretisation of a bank ``A (n, n, *b)``, ``B (n, p, *b)``.
+
+    ``[[Ad, Bd], [0, I]] = expm([[A, B], [0, 0]] dt)`` (paper eq. 10), block arithmetic
+    (:func:`uimm_jax.engine._block.expm`) so that it may run inside the hoisted time loop.
 
     Args:
-        A: continuous ``n x n``.
-        B: continuous ``n x p``.
+        A: continuous ``(n, n, *batch)``.
+        B: continuous ``(n, p, *batch)``.
         dt: sampling time.
         balance: static balancing diagonal for the augmented ``(n+p)`` matrix.
         squarings: static number of squarings in the matrix exponential.
@@ -76,15 +110,11 @@ def zoh(A: list, B: list, dt: float, *, balance=None, squarings: int = 0) -> tup
     Returns:
         ``(Ad, Bd)``.
     """
-    n = len(A)
-    p = len(B[0])
-    aug = [
-        [sm.mul(A[i][j], dt) for j in range(n)] + [sm.mul(B[i][k], dt) for k in range(p)]
-        for i in range(n)
-    ]
-    aug += [[0.0] * (n + p) for _ in range(p)]
-    E = sm.expm(aug, balance=balance, squarings=squarings)
-    return [row[:n] for row in E[:n]], [row[n:] for row in E[:n]]
+    n, p = A.shape[0], B.shape[1]
+    top = jnp.concatenate([A, B], axis=1) * dt
+    aug = jnp.concatenate([top, jnp.zeros((p, n + p) + top.shape[2:], top.dtype)], axis=0)
+    E = bk.expm(aug, balance=balance, squarings=squarings)
+    return E[:n, :n], E[:n, n:]
 
 
 # Largest number of squarings of the matrix exponential (|A dt| up to ~2^MAX/4): each is
@@ -104,7 +134,7 @@ def _changed(plant, theta) -> str:
 
 def _zoh_settings(mats: list[np.ndarray], dt: float) -> tuple[np.ndarray, int]:
     """Balancing and number of squarings that suit every given augmented matrix."""
-    d = sm.balance_diagonal(sum(np.abs(m) for m in mats) * dt)
+    d = bk.balance_diagonal(sum(np.abs(m) for m in mats) * dt)
     norm = 0.0
     for m in mats:
         b = (m * dt) * d[None, :] / d[:, None]
@@ -114,7 +144,37 @@ def _zoh_settings(mats: list[np.ndarray], dt: float) -> tuple[np.ndarray, int]:
     return d, s + 2
 
 
-class LinearDynamics:
+class _LinearBank(abc.ABC):
+    """Shared prediction and measurement of a discrete-time linear bank (exact KF = EKF).
+
+    ``const_C`` / ``const_d`` hold ``C`` and ``d`` when every model shares them (a NumPy
+    identity ``C`` is then free in the algebra); otherwise they live in the cache.
+    """
+
+    linear = True
+    const_C: np.ndarray | None = None
+    const_d: np.ndarray | None = None
+
+    @abc.abstractmethod
+    def prepare(self, theta: jax.Array) -> LinearCache:
+        """The :class:`LinearCache` of parameters ``theta (P, *batch)``."""
+
+    def predict(self, cache: LinearCache, x: jax.Array, u: jax.Array):
+        """``x_pred = Ad x + Bd u`` and ``F = Ad`` (exact); ``x`` is ``(n, *batch)``."""
+        return bk.mv(cache.A, x) + bk.mv(cache.B, u), cache.A
+
+    def observe(self, cache: LinearCache, x: jax.Array):
+        """``y_pred = C x + d`` and ``H = C`` (a NumPy constant when it is one)."""
+        C = self.const_C if cache.C is None else cache.C
+        d = cache.d
+        if d is None:
+            d = self.const_d
+            d = jnp.asarray(d, x.dtype).reshape(d.shape + (1,) * (x.ndim - 1))
+        return bk.mv(C, x) + d, C
+
+
+@final
+class LinearDynamics(_LinearBank):
     """Dynamics of a :class:`~uimm_jax.plants.base.LinearPlant` (exact KF = EKF).
 
     Args:
@@ -124,8 +184,6 @@ class LinearDynamics:
             they fix the static balancing and number of squarings of the matrix
             exponential, and reveal whether ``C`` and ``d`` are constants.
     """
-
-    linear = True
 
     def __init__(self, plant: Any, dt: float, reference_thetas: np.ndarray):
         self.plant = plant
@@ -190,34 +248,13 @@ class LinearDynamics:
 
         A, B, C, d = _batched_call(fn, theta, 4)
         if self.plant.time == "continuous":
-            Ad, Bd = zoh(
-                sm.from_array(A, 2),
-                sm.from_array(B, 2),
-                self.dt,
-                balance=self.balance,
-                squarings=self.squarings,
-            )
-            batch = theta.shape[1:]
-            A = sm.to_array(Ad, batch, theta.dtype)
-            B = sm.to_array(Bd, batch, theta.dtype)
+            A, B = zoh(A, B, self.dt, balance=self.balance, squarings=self.squarings)
         return LinearCache(
             A, B, None if self.const_C is not None else C, None if self.const_d is not None else d
         )
 
-    def predict(self, cache: LinearCache, x: jax.Array, u: jax.Array):
-        """``x_pred = Ad x + Bd u`` and ``F = Ad`` (exact); ``x`` is ``(n, *batch)``."""
-        return wd.mv(cache.A, x) + wd.mv(cache.B, u), cache.A
 
-    def observe(self, cache: LinearCache, x: jax.Array):
-        """``y_pred = C x + d`` and ``H = C`` (a NumPy constant when it is one)."""
-        C = self.const_C if cache.C is None else cache.C
-        d = cache.d
-        if d is None:
-            d = self.const_d
-            d = jnp.asarray(d, x.dtype).reshape(d.shape + (1,) * (x.ndim - 1))
-        return wd.mv(C, x) + d, C
-
-
+@final
 class NonlinearDynamics:
     """Dynamics of a :class:`~uimm_jax.plants.base.NonlinearPlant` (EKF, Jacobians by jacfwd).
 
@@ -292,15 +329,13 @@ class NonlinearDynamics:
         return yp, H
 
 
-class MatrixBankDynamics(LinearDynamics):
+@final
+class MatrixBankDynamics(_LinearBank):
     """Discrete-time linear bank given directly as matrices (see ``LinearGaussianBank``).
 
     The cache is a :class:`LinearCache` built by the caller; ``C`` and ``d`` live in it.
     """
 
-    def __init__(self):  # noqa: D107 - nothing to configure
-        self.const_C = None
-        self.const_d = None
-
     def prepare(self, theta):  # pragma: no cover - the cache is given, not derived
+        """A matrix bank has no parameters: its cache is built by the caller."""
         raise NotImplementedError("a matrix bank has no parameters to discretise")
