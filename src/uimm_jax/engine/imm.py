@@ -18,13 +18,15 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from uimm_jax.engine import _smallmat as sm
-from uimm_jax.engine import _wide as wd
+from uimm_jax.engine import _block as bk
 from uimm_jax.engine.kalman import kf_predict_cov, kf_update
 
 __all__ = ["IMMParams", "IMMState", "StepInfo", "imm_step", "log_normalize", "mix"]
 
-UNROLL_MAX_MODELS = 16
+# Up to this many models the mixing covariance (eq. 17) sums per-pair spreads,
+# O(n^2 M^2) work and memory per run; larger (combinatorial) banks use the
+# second-moment form (see :func:`mix`).
+PAIRWISE_MAX_MODELS = 16
 
 # Health flag bits reported per step.
 HEALTH_COV_REPAIRED = 1  # an innovation covariance was not numerically PD: pivots floored
@@ -82,16 +84,6 @@ class StepInfo(NamedTuple):
     health: jax.Array
 
 
-def _lse_list(terms: list[jax.Array]) -> jax.Array:
-    """Max-shifted log-sum-exp of a list of equally shaped arrays; all ``-inf`` -> ``-inf``."""
-    mx = terms[0]
-    for t in terms[1:]:
-        mx = jnp.maximum(mx, t)
-    safe = jnp.where(jnp.isfinite(mx), mx, 0.0)
-    s = sum(jnp.exp(t - safe) for t in terms)
-    return jnp.log(s) + safe
-
-
 def log_normalize(log_w: jax.Array, axis: int = -1) -> tuple[jax.Array, jax.Array]:
     """Normalise log weights along ``axis``: returns ``(log_w - lse, lse)``.
 
@@ -125,31 +117,24 @@ def mix(mean: jax.Array, cov: jax.Array, log_mu: jax.Array, log_trans: jax.Array
         ``log c_j`` ``(*runs, M)``.
     """
     M = mean.shape[-1]
-    if M <= UNROLL_MAX_MODELS:
+    if M <= PAIRWISE_MAX_MODELS:
         # log c_j = s + log sum_i p_ij exp(log mu_i - s), one shift s = max_i log mu_i for
-        # every j (a log-sum-exp with a shared shift: M exponentials instead of M^2).
-        # The largest term exp(log mu_i - s) is 1, so c_j underflows only if every
-        # p_ij mu_i / mu_max does, i.e. below 1e-308.
+        # every j (M exponentials instead of M^2).  The largest term exp(log mu_i - s) is
+        # 1, so c_j underflows only if every p_ij mu_i / mu_max does, i.e. below 1e-308.
         top = jnp.max(log_mu, axis=-1, keepdims=True)
         shift = jnp.where(jnp.isfinite(top), top, 0.0)
         mu_s = jnp.exp(log_mu - shift)  # (*runs, M), max entry 1
-        p = jnp.exp(log_trans)
-        terms = [p[..., i, :] * mu_s[..., i : i + 1] for i in range(M)]
-        c = sum(terms)  # (*runs, M) scaled predicted probabilities
+        t = jnp.exp(log_trans) * mu_s[..., :, None]  # (*runs, Mi, Mj)
+        c = jnp.sum(t, axis=-2)  # (*runs, Mj) scaled predicted probabilities
         ok = c > 0
         inv_c = 1.0 / jnp.where(ok, c, 1.0)
         log_c = jnp.where(ok, jnp.log(jnp.where(ok, c, 1.0)) + shift, -jnp.inf)
-        eye = jnp.eye(M, dtype=mean.dtype)
-        w = [jnp.where(ok, t * inv_c, eye[i]) for i, t in enumerate(terms)]
-        w, log_c = sm.materialize((w, log_c))
+        w = jnp.where(ok[..., None, :], t * inv_c[..., None, :], jnp.eye(M, dtype=mean.dtype))
         # Eq. (17) with the spread-of-means term per pair (i, j): exact, no cancellation
         # even when the means are far apart (after an outlier, say).
-        xs = [mean[..., i : i + 1] for i in range(M)]
-        x0 = sum(w[i] * xs[i] for i in range(M))
-        P0 = 0.0
-        for i in range(M):
-            dx = xs[i] - x0
-            P0 = P0 + w[i] * (cov[..., i : i + 1] + dx[:, None] * dx[None, :])
+        x0 = jnp.sum(mean[..., :, None] * w, axis=-2)
+        dx = mean[..., :, None] - x0[..., None, :]  # (n, *runs, Mi, Mj)
+        P0 = jnp.sum(w * (cov[..., :, None] + dx[:, None] * dx[None]), axis=-2)
         return x0, P0, log_c
     # Vectorised path for large banks (combinatorial IMM): weights (*runs, Mi, Mj).
     t = log_trans + log_mu[..., :, None]
@@ -210,16 +195,12 @@ def imm_step(
     dtype = state.mean.dtype
     nb = state.log_mode_probs.ndim  # batch axes (runs..., models)
     x0, P0, log_c = mix(state.mean, state.cov, state.log_mode_probs, params.log_transition)
-    x0, P0 = sm.materialize((x0, P0))
     x_pred, F = dyn.predict(cache, x0, u[..., None])
-    P_pred = kf_predict_cov(F, P0, wd.expand(params.Q, nb))
+    P_pred = kf_predict_cov(F, P0, bk.align(params.Q, 2, nb))
     y_pred, H = dyn.observe(cache, x_pred)
-    x_pred, P_pred, y_pred = sm.materialize((x_pred, P_pred, y_pred))
     floor = float(jnp.finfo(dtype).tiny) ** 0.5
-    res = kf_update(x_pred, P_pred, y[..., None], y_pred, H, wd.expand(params.R, nb), floor)
-    x_new, P_new, ll, nis, repaired = sm.materialize(
-        (res.mean, res.cov, res.loglik, res.nis, res.repaired)
-    )
+    res = kf_update(x_pred, P_pred, y[..., None], y_pred, H, bk.align(params.R, 2, nb), floor)
+    x_new, P_new, ll, nis, repaired = res.mean, res.cov, res.loglik, res.nis, res.repaired
     if active is None:
         active = jnp.ones(state.log_mode_probs.shape, bool)
     health = jnp.zeros(state.log_mode_probs.shape[:-1], jnp.int32)

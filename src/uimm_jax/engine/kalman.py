@@ -36,9 +36,9 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from uimm_jax.engine import _smallmat as sm
-from uimm_jax.engine import _wide as wd
+from uimm_jax.engine import _block as bk
 
 __all__ = ["UpdateResult", "ekf_predict", "ekf_update", "kf_predict_cov", "kf_update"]
 
@@ -71,7 +71,7 @@ class UpdateResult(NamedTuple):
 
 def kf_predict_cov(F, P: jax.Array, Q: jax.Array) -> jax.Array:
     """Predicted covariance ``F P F' + Q`` (eq. 22) of a bank; ``Q`` broadcasts."""
-    return wd.sym(wd.mm(wd.mm(F, P), wd.tr(F))) + Q
+    return bk.sym(bk.mmt(bk.mm(F, P), F)) + Q
 
 
 def kf_update(
@@ -93,58 +93,38 @@ def kf_update(
     """
     m = y_pred.shape[0]
     n = x.shape[0]
-    valid = jnp.isfinite(y)
+    valid = jnp.isfinite(y)  # (m, ...): the measurement's own shape, not the bank's
     e = jnp.where(valid, y - y_pred, 0.0)
-    valid = jnp.broadcast_to(valid, e.shape)
     # Missing channels: zero their rows/columns of S and P H' and put 1 on S's diagonal.
     # The gain's column for such a channel is then exactly zero, so H and R need no
     # masking (and a constant H = I stays free).
-    PHt = wd.mm(P, wd.tr(H))  # (n, m, *batch)
-    S = wd.mm(H, PHt) + R
-    eye = jnp.eye(m, dtype=x.dtype).reshape((m, m) + (1,) * (x.ndim - 1))
-    S = jnp.where(valid[:, None] & valid[None, :], S, eye)
+    PHt = bk.mmt(P, H)  # (n, m, *batch)
+    S = bk.mm(H, PHt) + R
+    eye = np.eye(m).reshape((m, m) + (1,) * (S.ndim - 2))
+    S = jnp.where(valid[:, None] & valid[None, :], S, eye.astype(S.dtype))
     PHt = jnp.where(valid[None, :], PHt, 0.0)
-    S, PHt, e = sm.materialize((S, PHt, e))
-    L, inv_diag, repaired = sm.chol([[S[c, d] for d in range(m)] for c in range(m)], floor)
-    L, inv_diag = sm.materialize((L, inv_diag))
-    # Columns of W = P H' L^-T: forward substitution, vectorised over the n rows.
-    w = []
-    for c in range(m):
-        acc = PHt[:, c]
-        for k in range(c):
-            acc = acc - w[k] * L[c][k]
-        w.append(acc * inv_diag[c])
+    Linv, logdet, repaired = bk.inv_cholesky(S, floor)
+    W = bk.mmt(PHt, Linv)  # P H' L^-T, (n, m, *batch)
+    v = bk.mv(Linv, e)  # L^-1 e: K e = W v and K S K' = W W'
+    nis = jnp.sum(v * v, axis=0)
+    num_obs = jnp.sum(valid, axis=0, dtype=jnp.int32)
+    loglik = -0.5 * (nis + logdet) - (0.5 * LOG_2PI) * num_obs.astype(nis.dtype)
+    x_new = x + bk.mv(W, v)
+    WWt = bk.mmt(W, W)
     # P - W W' has a rounding error of ~eps * P_ii on entries of size P_new_ii: fine unless
     # the update removes nearly all of a variance (a precise sensor against a vague prior,
     # as in the actuator's first steps) or S needed repair; then the Joseph form is used.
-    # ``margin`` (>= 0 where P - W W' is accurate) is materialised with W: one kernel.
-    prior = jnp.stack([P[i, i] for i in range(n)])
-    margin = (1.0 - CANCELLATION_RATIO) * prior - sum(w[c] * w[c] for c in range(m))
-    w, margin = sm.materialize((w, margin))
+    margin = (1.0 - CANCELLATION_RATIO) * bk.diagonal(P) - bk.diagonal(WWt)
     accurate = jnp.all(margin >= 0.0)  # False for NaN too
-    v = sm.chol_solve_vec(L, [e[c] for c in range(m)], inv_diag)  # L^-1 e
-    nis = sm.dot(v, v)
-    logdet = sm.chol_logdet(L)
-    num_obs = jnp.sum(valid.astype(jnp.int32), axis=0)
-    loglik = -0.5 * (nis + logdet) - (0.5 * LOG_2PI) * num_obs.astype(nis.dtype)
-    x_new = x + sum(w[c] * v[c] for c in range(m))
 
     def standard(_):
-        # P - K S K' = P - W W' (each outer product is exactly symmetric).
-        return P - sum(w[c][:, None] * w[c][None, :] for c in range(m))
+        return P - WWt  # P - K S K' = P - W W', symmetric entry for entry
 
     def joseph(_):
-        # K = W L^-1 (back substitution), then (I - K H) P (I - K H)' + K R K'.
-        kcols = [None] * m
-        for c in reversed(range(m)):
-            acc = w[c]
-            for k in range(c + 1, m):
-                acc = acc - kcols[k] * L[k][c]
-            kcols[c] = acc * inv_diag[c]
-        K = sm.materialize(jnp.stack(kcols, axis=1))  # (n, m, *batch)
-        eye_n = jnp.eye(n, dtype=x.dtype).reshape((n, n) + (1,) * (x.ndim - 1))
-        IKH = sm.materialize(eye_n - wd.mm(K, H))
-        return wd.sym(wd.mm(wd.mm(IKH, P), wd.tr(IKH)) + wd.mm(wd.mm(K, R), wd.tr(K)))
+        K = bk.mm(W, Linv)  # W L^-1 = P H' S^-1
+        eye_n = np.eye(n).reshape((n, n) + (1,) * (P.ndim - 2)).astype(P.dtype)
+        IKH = eye_n - bk.mm(K, H)
+        return bk.sym(bk.mmt(bk.mm(IKH, P), IKH) + bk.mmt(bk.mm(K, R), K))
 
     P_new = jax.lax.cond(jnp.any(repaired) | ~accurate, joseph, standard, None)
     return UpdateResult(x_new, P_new, loglik, nis, repaired, num_obs)

@@ -1,21 +1,18 @@
-"""Fault diagnosers: the updated IMM (UIMM) and the combinatorial IMM, same harness.
+"""Fault diagnosers: the updated IMM (UIMM) and the combinatorial IMM, on one harness.
 
-Both are ``(init, step)`` pairs over a :class:`DiagState`; ``step`` runs one IMM cycle
-(:func:`uimm_jax.engine.imm.imm_step`) and then the decision rule.
+Both are ``(init, step)`` pairs over a :class:`DiagState`: ``step`` runs one IMM cycle
+(:func:`uimm_jax.engine.imm.imm_step`, eqs. 15-28 and 30-31) and then the shared decision
+rule (:func:`uimm_jax.engine.decision.decide`, eq. 29 with persistence).  They differ in
+their bank and in what a declaration does, so they are two classes,
+:class:`UIMMDiagnoser` and :class:`IMMDiagnoser`, over the abstract :class:`Diagnoser`.
 
-**Decision rule** (paper eq. 29 with persistence): let ``c`` be the most probable model.
-If ``mu_c >= threshold`` and ``c``'s fault set contains an undeclared fault, a run counter
-for ``c`` grows by one per sample (and restarts when ``c`` changes or the condition fails);
-when it reaches ``hold`` the faults of ``c`` are *declared*.  Declared faults never retract
-(faults are irreversible, paper section 3.3).
-
-**UIMM** (design.md section 3).  With the declared set ``D`` the bank is ``[D, D+f1, ...,
-D+fF]``.  Declaring fault ``j`` (model ``c = j+1``):
+**UIMM** (docs/design.md section 3).  With the declared set ``D`` the bank is ``[D,
+D+f1, ..., D+fF]``: ``F + 1`` models.  Declaring fault ``j`` (model ``c = j+1``):
 
 1. ``D <- D | {j}``; every model's parameters are rebuilt with the masked update
-   ``where(mask, fault_value, nominal)`` (:func:`uimm_jax.engine.bank.thetas_for_sets`) and the
-   bank is re-discretised -- under ``lax.cond``, i.e. only on the steps where some run
-   declares, never every step.
+   ``where(mask, fault_value, nominal)`` (:func:`uimm_jax.engine.bank.thetas_for_sets`)
+   and the bank is re-discretised -- under ``lax.cond``, i.e. only on the steps where
+   some run declares, never every step.
 2. Hand-over of the estimate: every model restarts from the winning model's posterior
    mean and covariance (the winner was conditioned on the fault that is now declared; the
    others were not).
@@ -32,9 +29,10 @@ The recognised system mode at each step is the fault set of the most probable mo
 
 from __future__ import annotations
 
+import abc
 import dataclasses
 import functools
-from typing import Any, Literal, NamedTuple
+from typing import Any, ClassVar, NamedTuple, final
 
 import jax
 import jax.numpy as jnp
@@ -48,9 +46,19 @@ from uimm_jax.engine.bank import (
     thetas_for_sets,
     uimm_sets,
 )
+from uimm_jax.engine.decision import decide
 from uimm_jax.engine.imm import IMMParams, IMMState, StepInfo, imm_step, log_normalize
 
-__all__ = ["DiagInfo", "DiagParams", "DiagState", "Diagnoser", "build_diagnoser"]
+__all__ = [
+    "DiagInfo",
+    "DiagParams",
+    "DiagState",
+    "Diagnoser",
+    "IMMDiagnoser",
+    "UIMMDiagnoser",
+    "build_diagnoser",
+    "make_params",
+]
 
 
 class DiagParams(NamedTuple):
@@ -102,20 +110,20 @@ class DiagInfo(NamedTuple):
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class Diagnoser:
-    """A UIMM or combinatorial-IMM diagnoser for one plant and fault table.
+class Diagnoser(abc.ABC):
+    """A fault diagnoser for one plant and fault table: the shared ``(init, step)``.
 
-    Build with :func:`build_diagnoser`.  Instances are static configuration (hashed by
-    identity): the differentiable numbers travel in :class:`DiagParams`.
+    Build with :func:`build_diagnoser` (or :class:`UIMMDiagnoser` / :class:`IMMDiagnoser`
+    directly).  Instances are static configuration (hashed by identity): the
+    differentiable numbers travel in :class:`DiagParams`.
 
     Attributes:
-        method: ``"uimm"`` or ``"imm"``.
-        dyn: the dynamics object (:mod:`uimm_jax.engine.dynamics`).
+        dyn: the dynamics object (:class:`uimm_jax.engine.dynamics.Dynamics`).
         table: the :class:`~uimm_jax.engine.bank.FaultTable`.
         gate: optional chi-square innovation gate.
     """
 
-    method: Literal["uimm", "imm"]
+    method: ClassVar[str]
     dyn: Any
     table: FaultTable
     gate: float | None = None
@@ -126,28 +134,30 @@ class Diagnoser:
         return self.table.num_faults
 
     @property
+    @abc.abstractmethod
     def num_models(self) -> int:
-        """``F + 1`` for UIMM, ``2^F`` for IMM."""
-        F = self.num_faults
-        return F + 1 if self.method == "uimm" else 2**F
+        """Size of the bank."""
 
+    @abc.abstractmethod
     def model_sets(self, declared: jax.Array) -> jax.Array:
         """Fault sets of the bank's models, ``(*runs, M, F)``."""
-        if self.method == "uimm":
-            return uimm_sets(declared)
-        sets = jnp.asarray(combinatorial_sets(self.num_faults))
-        return jnp.broadcast_to(sets, declared.shape[:-1] + sets.shape)
 
+    @abc.abstractmethod
     def model_labels(self) -> list[str]:
-        """Human labels of the model slots (UIMM slots are relative to ``D``)."""
-        names = self.table.names
-        if self.method == "uimm":
-            return ["D (no new fault)"] + [f"D + {n}" for n in names]
-        sets = combinatorial_sets(self.num_faults)
-        return [
-            " + ".join(n for n, on in zip(names, s, strict=True) if on) or "fault-free"
-            for s in sets
-        ]
+        """Human labels of the model slots."""
+
+    @abc.abstractmethod
+    def _active(self, declared: jax.Array) -> jax.Array | None:
+        """``(*runs, M)`` models that may carry probability, or ``None`` for all."""
+
+    @abc.abstractmethod
+    def _candidate_set(self, cand: jax.Array, declared: jax.Array) -> jax.Array:
+        """Fault set ``(*runs, F)`` of model ``cand`` ``(*runs,)``."""
+
+    def _after_decision(self, imm_state, cache, cand, declare_now, new_declared):
+        """What a declaration does to the bank (nothing by default)."""
+        del cand, declare_now, new_declared
+        return imm_state, cache
 
     def prepare(self, declared: jax.Array, dtype) -> Any:
         """Dynamics cache of the bank for the declared set ``(*runs, F)``."""
@@ -167,12 +177,10 @@ class Diagnoser:
             dtype: float dtype (default: JAX's default float).
         """
         dtype = dtype or jnp.asarray(0.0).dtype
-        M = self.num_models
-        shape = runs + (M,)
-        mean = jnp.broadcast_to(
-            jnp.asarray(mean0, dtype)[(...,) + (None,) * len(shape)], (len(mean0),) + shape
-        )
+        shape = runs + (self.num_models,)
+        mean0 = jnp.asarray(mean0, dtype)
         cov0 = jnp.asarray(cov0, dtype)
+        mean = jnp.broadcast_to(mean0[(...,) + (None,) * len(shape)], mean0.shape + shape)
         cov = jnp.broadcast_to(cov0[(...,) + (None,) * len(shape)], cov0.shape + shape)
         mp = jnp.asarray(mode_probs0, dtype)
         log_mu = jnp.broadcast_to(
@@ -209,14 +217,6 @@ class Diagnoser:
             ``(new_state, info)``.
         """
         declared = state.declared
-        M = self.num_models
-        sets = self.model_sets(declared)  # (*runs, M, F)
-        if self.method == "uimm":
-            active = jnp.concatenate(
-                [jnp.ones(declared.shape[:-1] + (1,), bool), ~declared], axis=-1
-            )
-        else:
-            active = None
         imm_state, info = imm_step(
             self.dyn,
             state.imm,
@@ -224,47 +224,71 @@ class Diagnoser:
             params.imm,
             u,
             y,
-            active=active,
+            active=self._active(declared),
             gate=self.gate,
             with_cov=with_cov,
         )
-        log_mu = imm_state.log_mode_probs
-        cand = jnp.argmax(log_mu, axis=-1).astype(jnp.int32)
-        onehot = cand[..., None] == jnp.arange(M)
-        cand_set = jnp.any(onehot[..., None] & sets, axis=-2)  # (*runs, F)
-        top = jnp.max(log_mu, axis=-1)
-        dtype = log_mu.dtype
-        qualifies = jnp.any(cand_set & ~declared, axis=-1) & (
-            top >= jnp.log(jnp.asarray(params.threshold, dtype))
+        dec = decide(
+            imm_state.log_mode_probs,
+            lambda cand: self._candidate_set(cand, declared),
+            declared,
+            state.run_model,
+            state.run_len,
+            params.threshold,
+            params.hold,
         )
-        run_len = jnp.where(qualifies, jnp.where(cand == state.run_model, state.run_len + 1, 1), 0)
-        declare_now = qualifies & (run_len >= params.hold)
-        new_declared = jnp.where(declare_now[..., None], declared | cand_set, declared)
-        run_len = jnp.where(declare_now, 0, run_len).astype(jnp.int32)
-        cache = state.cache
-        if self.method == "uimm":
-            imm_state, cache = self._declare(
-                imm_state, cache, onehot, declare_now, new_declared, dtype
-            )
-        new_state = DiagState(imm_state, cache, new_declared, cand, run_len)
+        imm_state, cache = self._after_decision(
+            imm_state, state.cache, dec.candidate, dec.declared_now, dec.declared
+        )
+        new_state = DiagState(imm_state, cache, dec.declared, dec.candidate, dec.run_len)
         out = DiagInfo(
             step=info,
-            recognised=set_codes(cand_set),
-            declared=set_codes(new_declared),
-            declared_now=declare_now,
+            recognised=set_codes(dec.candidate_set),
+            declared=set_codes(dec.declared),
+            declared_now=dec.declared_now,
         )
         return new_state, out
 
-    def _declare(self, imm_state: IMMState, cache, onehot, declare_now, new_declared, dtype):
-        """UIMM hand-over and masked re-parameterisation on declaration (see module doc).
+
+@final
+@dataclasses.dataclass(frozen=True, eq=False)
+class UIMMDiagnoser(Diagnoser):
+    """The updated IMM: ``F + 1`` models ``[D, D+f1, ..., D+fF]`` (see the module doc)."""
+
+    method: ClassVar[str] = "uimm"
+
+    @property
+    def num_models(self) -> int:
+        """``F + 1``."""
+        return self.num_faults + 1
+
+    def model_sets(self, declared: jax.Array) -> jax.Array:
+        """Fault sets of the bank's models, ``(*runs, F + 1, F)``."""
+        return uimm_sets(declared)
+
+    def model_labels(self) -> list[str]:
+        """Slots are relative to the declared set ``D``."""
+        return ["D (no new fault)"] + [f"D + {n}" for n in self.table.names]
+
+    def _active(self, declared):
+        # A declared fault's hypothesis slot equals model 0 and carries no probability.
+        return jnp.concatenate([jnp.ones(declared.shape[:-1] + (1,), bool), ~declared], -1)
+
+    def _candidate_set(self, cand, declared):
+        return declared | (cand[..., None] == jnp.arange(1, self.num_models))
+
+    def _after_decision(self, imm_state, cache, cand, declare_now, new_declared):
+        """UIMM hand-over and masked re-parameterisation on declaration (module doc).
 
         Everything happens inside one ``lax.cond`` taken only on steps where some run
         declares, so the other steps pay nothing for it.
         """
         dn = declare_now[..., None]  # (*runs, 1)
+        dtype = imm_state.mean.dtype
 
         def handover(operand):
             st, c = operand
+            onehot = cand[..., None] == jnp.arange(self.num_models)
             oh = onehot.astype(dtype)
             win_mean = jnp.sum(st.mean * oh, axis=-1, keepdims=True)
             win_cov = jnp.sum(st.cov * oh, axis=-1, keepdims=True)
@@ -283,6 +307,38 @@ class Diagnoser:
         return jax.lax.cond(jnp.any(declare_now), handover, lambda o: o, (imm_state, cache))
 
 
+@final
+@dataclasses.dataclass(frozen=True, eq=False)
+class IMMDiagnoser(Diagnoser):
+    """The combinatorial IMM: ``2^F`` fixed models, one per fault subset."""
+
+    method: ClassVar[str] = "imm"
+
+    @property
+    def num_models(self) -> int:
+        """``2^F``."""
+        return 2**self.num_faults
+
+    def model_sets(self, declared: jax.Array) -> jax.Array:
+        """Fault sets of the bank's models, ``(*runs, 2^F, F)`` (bit j of s = fault j)."""
+        sets = jnp.asarray(combinatorial_sets(self.num_faults))
+        return jnp.broadcast_to(sets, declared.shape[:-1] + sets.shape)
+
+    def model_labels(self) -> list[str]:
+        """One label per fault subset."""
+        names = self.table.names
+        return [
+            " + ".join(n for n, on in zip(names, s, strict=True) if on) or "fault-free"
+            for s in combinatorial_sets(self.num_faults)
+        ]
+
+    def _active(self, declared):
+        return None
+
+    def _candidate_set(self, cand, declared):
+        return ((cand[..., None] >> jnp.arange(self.num_faults)) & 1).astype(bool)
+
+
 @functools.partial(jax.jit, static_argnums=(0, 2))
 def _jit_prepare(diag: Diagnoser, declared: jax.Array, dtype) -> Any:
     """The bank's discretisation, compiled once (eagerly it dispatches hundreds of tiny ops).
@@ -290,6 +346,9 @@ def _jit_prepare(diag: Diagnoser, declared: jax.Array, dtype) -> Any:
     Inside another trace (the filter's ``lax.cond`` rebuild) the call is inlined.
     """
     return diag._prepare(declared, dtype)
+
+
+_BUILDERS = {"uimm": UIMMDiagnoser, "imm": IMMDiagnoser}
 
 
 def build_diagnoser(
@@ -303,11 +362,11 @@ def build_diagnoser(
 
     Args:
         method: ``"uimm"`` or ``"imm"``.
-        dyn: dynamics object for the plant (:func:`uimm_jax.engine.dynamics.make_dynamics`).
+        dyn: dynamics object for the plant (:func:`uimm_jax.plants.make_dynamics`).
         table: the fault table of the bank.
         gate: optional chi-square innovation gate.
     """
-    if method not in ("uimm", "imm"):
+    if method not in _BUILDERS:
         raise ValueError(f"method: expected 'uimm' or 'imm', got {method!r}")
     if not isinstance(table, FaultTable):
         raise TypeError(
@@ -319,7 +378,7 @@ def build_diagnoser(
             f"method 'imm' with {table.num_faults} faults needs "
             f"2^{table.num_faults} models; use 'uimm' or fewer faults"
         )
-    return Diagnoser(method, dyn, table, None if gate is None else float(gate))
+    return _BUILDERS[method](dyn, table, None if gate is None else float(gate))
 
 
 def make_params(transition, Q, R, threshold, hold, dtype=None) -> DiagParams:
