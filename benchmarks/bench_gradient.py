@@ -1,7 +1,7 @@
 """Time and peak memory of one tuning gradient through a long run, against the forward pass.
 
 For each batch size, two fresh subprocesses run the same loss
-(:func:`uimm_jax.tuning.loss_and_parts`: truth simulated inside the loop, exact hard UIMM,
+(:func:`uimm_jax.studies.tune.loss_and_parts`: truth simulated inside the loop, exact hard UIMM,
 decision surrogate, nested ``lax.scan`` with ``jax.checkpoint`` on segments of
 ``sqrt(N)`` samples):
 
@@ -49,30 +49,32 @@ def _setup():
 def _problem(steps: int, batch: int, segment: int | None, checkpoint: bool = True):
     import warnings
 
-    from uimm_jax import tuning
     from uimm_jax.scenario.parse import load_scenario
+    from uimm_jax.studies import tune
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         sc = load_scenario(SCENARIO)
     dur = steps * float(sc.dt)
-    sc = tuning.rescale_scenario(sc, dur)
-    config = tuning.TuneConfig(tune_noise=True, segment=segment, checkpoint=checkpoint)
-    problem, data = tuning.make_batch(sc, [tuning.scenario_case(sc)], batch, seed=7)
-    raw = tuning.init_params(
+    sc = tune.rescale_scenario(sc, dur)
+    config = tune.TuneConfig(tune_noise=True, segment=segment, checkpoint=checkpoint)
+    problem, data = tune.make_batch(sc, [tune.scenario_case(sc)], batch, seed=7)
+    raw = tune.init_params(
         sc.transition_matrix(), sc.filter.decision.threshold, sc.filter.decision.hold, config
     )
-    return tuning, problem, data, raw, config
+    return tune, problem, data, raw, config
 
 
 def _worker(args) -> dict:
     jax = _setup()
     import resource
 
-    tuning, problem, data, raw, config = _problem(args.steps, args.batch, args.segment)
+    from uimm_jax.studies import tune_loss
+
+    tune, problem, data, raw, config = _problem(args.steps, args.batch, args.segment)
 
     def loss(r, b):
-        return tuning.loss_and_parts(r, problem, b, config)
+        return tune.loss_and_parts(r, problem, b, config)
 
     fn = (
         jax.jit(loss) if args.mode == "forward" else jax.jit(jax.value_and_grad(loss, has_aux=True))
@@ -108,7 +110,7 @@ def _worker(args) -> dict:
         "mode": args.mode,
         "steps": args.steps,
         "batch": args.batch,
-        "segment": tuning._segment_length(args.steps, config),
+        "segment": tune_loss._segment_length(args.steps, config),
         "compile_s": compile_s,
         "time_s": min(times),
         "times_s": times,
@@ -124,10 +126,10 @@ def _check(steps: int) -> None:
     jax = _setup()
     import numpy as np
 
-    tuning, problem, data, raw, config = _problem(steps, 2, None, True)
-    _, vg = tuning.make_loss_fn(problem, config)
-    _, vg_plain = tuning.make_loss_fn(
-        problem, tuning.TuneConfig(tune_noise=True, segment=steps, checkpoint=False)
+    tune, problem, data, raw, config = _problem(steps, 2, None, True)
+    _, vg = tune.make_loss_fn(problem, config)
+    _, vg_plain = tune.make_loss_fn(
+        problem, tune.TuneConfig(tune_noise=True, segment=steps, checkpoint=False)
     )
     (l1, _), g1 = vg(raw, data)
     (l2, _), g2 = vg_plain(raw, data)

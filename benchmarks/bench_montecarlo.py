@@ -3,10 +3,11 @@
 Every configuration runs in its own subprocess (fresh XLA, its own peak memory VmHWM from
 /proc/self/status; XLA's buffers are not seen by tracemalloc):
 
-* ``single``: the engine's single-run path (``runner.simulate_scenario`` then
-  ``runner.filter_measurements``, two scans, per-step outputs kept) -- the baseline;
-* ``fused B``: the Monte Carlo kernel of :mod:`uimm_jax.montecarlo` (truth + UIMM + metrics
-  in one scan, nothing per step stored) on a batch of B runs of the paper's simulation 1
+* ``single``: the engine's single-run path (``run.simulate_scenario`` then
+  ``run.filter_measurements``, two scans, per-step outputs kept) -- the baseline;
+* ``fused B``: the Monte Carlo kernel of :mod:`uimm_jax.studies.sweep`
+  (:func:`uimm_jax.engine.scan.simulate_diagnose`: truth + UIMM + metrics per chunk, nothing
+  per step stored) on a batch of B runs of the paper's simulation 1
   (valve wear at 30 % of the run, leakage at 60 %), on 1 device, and on 2 forced host
   devices (``--xla_force_host_platform_device_count=2``, the run axis sharded);
 * ``memory``: a fixed batch over 1e4 and 1e6 samples (same compiled chunk of 1e4 steps):
@@ -58,66 +59,49 @@ def worker(args) -> dict:
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
     import numpy as np
 
-    from uimm_jax import montecarlo as mc
-    from uimm_jax import runner
+    from uimm_jax.engine.truth import run_keys
+    from uimm_jax.studies import run, sweep
 
     sc = _scenario(args.steps)
     N, L = args.steps, args.chunk
     rss0 = vm_mib("VmRSS")
     if args.worker == "single":
-        setup = runner.setup_scenario(sc, "uimm")
 
         def once(n):
-            sub = _scenario(n) if n != N else sc
-            s = runner.setup_scenario(sub, "uimm")
+            s = run.setup_scenario(_scenario(n) if n != N else sc, "uimm")
             t0 = time.perf_counter()
-            tr = runner.simulate_scenario(s, chunk=L)
-            _, out = runner.filter_measurements(s, tr["y"], tr["u"], chunk=L)
+            tr = run.simulate_scenario(s, chunk=L)
+            _, out = run.filter_measurements(s, tr["y"], tr["u"], chunk=L)
             np.asarray(out["declared"])
             return time.perf_counter() - t0
 
-        del setup
         t_first = once(L)  # compile + one chunk
         hwm_compile = vm_mib("VmHWM")
         t_run = once(N)
         B = 1
     else:
-        setup = runner.setup_scenario(sc, "uimm")
-        spec = mc.sweep_spec(sc, runs=args.batch, fault_free=False, batch=args.batch)
-        dt = float(sc.dt)
-        onset = np.array([round(0.3 * N), round(0.6 * N), -1], np.int32)
-        jobs = [mc._Job(0, r, onset, np.ones(3), 1.0) for r in range(args.batch)]
-        noise_keys, _ = mc.run_keys(spec.seed, args.batch)
+        setup = run.setup_scenario(sc, "uimm")
+        B = args.batch
+        onset = np.tile(np.array([round(0.3 * N), round(0.6 * N), -1]), (B, 1))
+        noise_keys, _ = run_keys(sc.seed, B)
         devs = jax.devices()
         mesh = None
         if len(devs) > 1:
             from jax.sharding import Mesh
 
             mesh = Mesh(np.array(devs), ("runs",))
-        B = args.batch
 
         def once(n):
-            plan, keys, carry = mc._make_batch(setup, sc, jobs, noise_keys, 3, jnp_float64())
+            plan, keys, carry = sweep.batch_inputs(
+                setup, onset, np.ones(onset.shape), np.ones(B), noise_keys, 3, jnp.float64
+            )
             jax.block_until_ready((plan, keys, carry))
             t0 = time.perf_counter()
-            m = mc._run_batch(
-                setup.diagnoser,
-                dt,
-                1,
-                setup.params,
-                setup.signal,
-                plan,
-                keys,
-                carry,
-                mesh,
-                n,
-                L,
-                None,
-            )
-            elapsed = time.perf_counter() - t0
-            return elapsed, m
+            m = sweep.run_batch(setup, plan, keys, carry, n, L, mesh=mesh)
+            return time.perf_counter() - t0, m
 
         t_first, _ = once(L)
         hwm_compile = vm_mib("VmHWM")
@@ -138,12 +122,6 @@ def worker(args) -> dict:
         "hwm_after_compile_mib": hwm_compile,
         "hwm_end_mib": vm_mib("VmHWM"),
     }
-
-
-def jnp_float64():
-    import jax.numpy as jnp
-
-    return jnp.float64
 
 
 def _spawn(mode: str, batch: int, steps: int, chunk: int, devices: int, timeout: float) -> dict:
@@ -219,7 +197,7 @@ def main(argv=None) -> int:
     rows = []
     n, L = _steps_for(1, args.run_steps / 4, args.chunk)
     base = _spawn("single", 1, n, L, 1, 1800)
-    base["label"] = "single run (runner: simulate + filter)"
+    base["label"] = "single run (run: simulate + filter)"
     rows.append(base)
     print(
         f"baseline single run: {base['run_steps_per_s'] / 1e6:.3f} M steps/s "

@@ -50,12 +50,12 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from uimm_jax import runner  # noqa: E402
 from uimm_jax.engine import _smallmat as sm  # noqa: E402
 from uimm_jax.engine import _wide as wd  # noqa: E402
 from uimm_jax.engine.imm import imm_step, mix  # noqa: E402
 from uimm_jax.engine.kalman import kf_predict_cov, kf_update  # noqa: E402
 from uimm_jax.scenario.parse import load_scenario  # noqa: E402
+from uimm_jax.studies import run  # noqa: E402
 
 SCENARIO = REPO / "scenarios" / "paper_sim1_tuned.toml"
 
@@ -236,8 +236,8 @@ def load_bank():
     Joseph-form fallback (kalman.py) on every step instead of almost never.
     """
     warnings.simplefilter("ignore")
-    setup = runner.setup_scenario(load_scenario(SCENARIO), "uimm")
-    truth = runner.simulate_scenario(setup)
+    setup = run.setup_scenario(load_scenario(SCENARIO), "uimm")
+    truth = run.simulate_scenario(setup)
 
     def data(N, runs):
         u, y = truth["u"][:N], truth["y"][:N]

@@ -69,9 +69,9 @@ def _child(args) -> dict:
     import jax.numpy as jnp
 
     import uimm_jax
-    from uimm_jax import runner
     from uimm_jax.scenario.parse import parse_scenario
     from uimm_jax.scenario.write import scenario_to_dict
+    from uimm_jax.studies import run
 
     compile_log: list[float] = []
 
@@ -107,14 +107,14 @@ def _child(args) -> dict:
     dtype = jnp.float64 if args.dtype == "float64" else jnp.float32
 
     t0 = time.perf_counter()
-    setup = runner.setup_scenario(scenario, dtype=dtype)
+    setup = run.setup_scenario(scenario, dtype=dtype)
     out["setup_s"] = time.perf_counter() - t0
 
     chunk = min(args.chunk, args.steps)
     truth = {}
 
     def simulate():
-        truth.update(runner.simulate_scenario(setup, chunk=chunk))
+        truth.update(run.simulate_scenario(setup, chunk=chunk))
         return truth["y"]
 
     out["simulate"] = measure(simulate, args.repeat) | {"steps": args.steps}
@@ -122,12 +122,12 @@ def _child(args) -> dict:
     filtered = {}
 
     def run_filter():
-        filtered.update(runner.filter_measurements(setup, truth["y"], truth["u"], chunk=chunk)[1])
+        filtered.update(run.filter_measurements(setup, truth["y"], truth["u"], chunk=chunk)[1])
         return filtered["mode_probs"]
 
     out["filter"] = measure(run_filter, args.repeat) | {"steps": args.steps}
     filt = filtered
-    summary = runner.summarize(setup, truth["truth"], filt, runtime_s=1.0)
+    summary = run.summarize(setup, truth["truth"], filt, runtime_s=1.0)
     out["filter"]["declarations"] = [(d["fault"], d["time"]) for d in summary["declarations"]]
     out["filter"]["mode_accuracy"] = summary["mode_accuracy"]
     out["filter"]["finite"] = bool(np.all(np.isfinite(filt["mode_probs"])))

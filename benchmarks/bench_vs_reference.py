@@ -37,7 +37,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import uimm_jax  # noqa: E402
-from uimm_jax import runner  # noqa: E402
+from uimm_jax.studies import run  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -58,9 +58,9 @@ def _truth(setup, N, B, seed):
     import dataclasses
 
     short = dataclasses.replace(sc, duration=N * sc.dt)
-    s = runner.setup_scenario(short)
+    s = run.setup_scenario(short)
     for b in range(B):
-        tr = runner.simulate_scenario(s, seed + b)
+        tr = run.simulate_scenario(s, seed + b)
         ys.append(tr["y"])
         u = tr["u"][:, 0]
     return u, np.stack(ys, -1), s
@@ -83,7 +83,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     ref = _load_reference(args.reference)
     sc = uimm_jax.load_scenario(REPO / "scenarios" / "paper_sim1_tuned.toml")
-    setup = runner.setup_scenario(sc)
+    setup = run.setup_scenario(sc)
     rows = []
     for B, N in ((1, args.steps), (args.batch, args.batch_steps)):
         u, y, s = _truth(setup, N, B, 0)

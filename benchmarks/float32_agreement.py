@@ -3,8 +3,8 @@
 For every scenario the truth is simulated once in float64; the same measurements are then
 diagnosed by
 
-* the float64 reference (``runner.filter_measurements``),
-* the scaled float32 mode (``uimm_jax.scaling``: states and outputs scaled to O(1)),
+* the float64 reference (``run.filter_measurements``),
+* the scaled float32 mode (``uimm_jax.studies.float32``: states and outputs scaled to O(1)),
 * plain float32 without scaling (for comparison only),
 
 and the declarations (faults and times), mode probabilities and recognised modes are
@@ -38,15 +38,15 @@ import numpy as np  # noqa: E402
 
 from _common import PAPER_SCENARIOS  # noqa: E402
 from uimm_jax.errors import UIMMWarning  # noqa: E402
-from uimm_jax.runner import (  # noqa: E402
+from uimm_jax.scenario.parse import load_scenario, parse_scenario  # noqa: E402
+from uimm_jax.scenario.write import scenario_to_dict  # noqa: E402
+from uimm_jax.studies.float32 import filter_float32, float32_agreement, setup_float32  # noqa: E402
+from uimm_jax.studies.run import (  # noqa: E402
     filter_measurements,
     setup_scenario,
     simulate_scenario,
     summarize,
 )
-from uimm_jax.scaling import filter_float32, float32_agreement, setup_float32  # noqa: E402
-from uimm_jax.scenario.parse import load_scenario, parse_scenario  # noqa: E402
-from uimm_jax.scenario.write import scenario_to_dict  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT = PAPER_SCENARIOS
@@ -117,10 +117,11 @@ def batched_speed(sc, runs, steps, rounds):
     """ns per run-step of the float64 and scaled float32 diagnosers on a batch of runs.
 
     ``runs`` copies of one simulated run on the engine's run axis, one compiled scan of
-    ``steps`` steps (``runner._filter_chunk``); float64 and float32 are timed alternately
-    ``rounds`` times and the medians are reported (the machine may be shared).
+    ``steps`` steps (:func:`uimm_jax.engine.scan.filter_chunk`); float64 and float32 are
+    timed alternately ``rounds`` times and the medians are reported (the machine may be
+    shared).
     """
-    from uimm_jax.runner import _filter_chunk
+    from uimm_jax.engine.scan import filter_chunk
 
     d = scenario_to_dict(sc)
     d["duration"] = steps * sc.dt
@@ -144,7 +145,7 @@ def batched_speed(sc, runs, steps, rounds):
         uy = (jnp.asarray(u, dtype), jnp.asarray(y / scale[None, :, None], dtype))
 
         def run():
-            out = _filter_chunk(setup.diagnoser, setup.params, st0, 0, uy, False)
+            out = filter_chunk(setup.diagnoser, setup.params, st0, 0, uy)
             return jax.block_until_ready(out)
 
         run()  # compile

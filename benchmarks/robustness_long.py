@@ -33,15 +33,15 @@ import numpy as np  # noqa: E402
 
 from _common import PAPER_SCENARIOS  # noqa: E402
 from uimm_jax.errors import UIMMWarning  # noqa: E402
-from uimm_jax.runner import (  # noqa: E402
+from uimm_jax.scenario.measured import degrade_measurements  # noqa: E402
+from uimm_jax.scenario.parse import load_scenario, parse_scenario  # noqa: E402
+from uimm_jax.scenario.write import scenario_to_dict  # noqa: E402
+from uimm_jax.studies.run import (  # noqa: E402
     filter_measurements,
     setup_scenario,
     simulate_scenario,
     summarize,
 )
-from uimm_jax.scenario.measured import degrade_measurements  # noqa: E402
-from uimm_jax.scenario.parse import load_scenario, parse_scenario  # noqa: E402
-from uimm_jax.scenario.write import scenario_to_dict  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT = PAPER_SCENARIOS

@@ -7,7 +7,7 @@ import contextlib
 
 import jax
 
-from uimm_jax.filtering import LinearGaussianBank, imm_filter
+from uimm_jax.studies.imm_filter import LinearGaussianBank, imm_filter
 
 BACKEND_COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
 

@@ -24,10 +24,10 @@ from uimm_jax.errors import UIMMWarning
 from uimm_jax.plants.base import LinearPlant
 from uimm_jax.plants.dynamics import make_dynamics
 from uimm_jax.plants.hydraulic_actuator import HYDRAULIC_ACTUATOR
-from uimm_jax.runner import run_scenario
 from uimm_jax.scenario.parse import load_scenario, parse_scenario
 from uimm_jax.scenario.write import dump_scenario
 from uimm_jax.studies import plots as plotting
+from uimm_jax.studies.run import run_scenario
 
 
 def _filter(problem, **changes):
@@ -177,7 +177,7 @@ def test_a_diverging_truth_is_an_error_not_missing_data():
 
 
 def test_sweep_magnitudes_that_make_a_parameter_negative_are_refused():
-    from uimm_jax.montecarlo import sweep_spec
+    from uimm_jax.scenario.sweep import sweep_spec
 
     sc = short_scenario(sim=2, duration=0.01, events=(0.002, 0.004))  # air in oil: Eh drops
     sweep_spec(sc, runs=2, magnitudes=[1.0, 1.1])
@@ -239,7 +239,7 @@ def test_one_sample_plots_do_not_warn(tmp_path):
 
 
 def test_sweep_with_an_overflowing_truth_is_refused():
-    from uimm_jax.montecarlo import run_sweep
+    from uimm_jax.studies.sweep import run_sweep
 
     sc = short_scenario(duration=0.01, events=(0.002, 0.004))
     with warnings.catch_warnings():

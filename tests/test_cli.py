@@ -17,8 +17,8 @@ import uimm_jax
 from _robustness_helpers import CHUNK, REPO, short_scenario, write_short
 from uimm_jax import cli
 from uimm_jax.errors import ScenarioError
-from uimm_jax.runner import run_scenario
 from uimm_jax.scenario.parse import load_scenario
+from uimm_jax.studies.run import run_scenario
 
 MALFORMED_DIR = Path(__file__).resolve().parent / "malformed"
 CORPUS = sorted(p for p in MALFORMED_DIR.glob("*.toml") if not p.name.startswith("_"))

@@ -30,7 +30,6 @@ import scipy.integrate
 import scipy.linalg
 
 import uimm_jax
-from uimm_jax import runner
 from uimm_jax.engine import bank, imm, kalman
 from uimm_jax.engine.dynamics import NonlinearDynamics
 from uimm_jax.engine.uimm import DiagState, build_diagnoser
@@ -39,6 +38,7 @@ from uimm_jax.plants.dynamics import make_dynamics
 from uimm_jax.plants.hydraulic_actuator import EXTRA_FAULTS, HYDRAULIC_ACTUATOR, PAPER_FAULTS
 from uimm_jax.scenario.parse import parse_scenario
 from uimm_jax.scenario.write import scenario_to_dict
+from uimm_jax.studies import run
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -560,13 +560,13 @@ def short_sim1(*, duration=SHORT_DURATION, event_times=SHORT_EVENT_TIMES, **deci
 
 @pytest.fixture(scope="module")
 def sim1_setup():
-    return runner.setup_scenario(short_sim1())
+    return run.setup_scenario(short_sim1())
 
 
 @pytest.fixture(scope="module")
 def sim1(sim1_setup):
-    truth = runner.simulate_scenario(sim1_setup, chunk=CHUNK)
-    final, out = runner.filter_measurements(
+    truth = run.simulate_scenario(sim1_setup, chunk=CHUNK)
+    final, out = run.filter_measurements(
         sim1_setup, truth["y"], truth["u"], chunk=CHUNK, with_cov=True
     )
     return SimpleNamespace(setup=sim1_setup, truth=truth, final=final, out=out)
@@ -636,10 +636,10 @@ def test_zoh_equals_expm_for_every_fault_parameter_set(library, sim1_setup):
 
 
 def test_uimm_with_nothing_declared_equals_imm_on_the_same_bank(sim1):
-    setup = runner.setup_scenario(short_sim1(threshold=1.0, hold=NEVER))
+    setup = run.setup_scenario(short_sim1(threshold=1.0, hold=NEVER))
     assert setup.diagnoser is sim1.setup.diagnoser  # same compiled chunk
     y, u = sim1.truth["y"], sim1.truth["u"]
-    _, out = runner.filter_measurements(setup, y, u, chunk=CHUNK, with_cov=True)
+    _, out = run.filter_measurements(setup, y, u, chunk=CHUNK, with_cov=True)
     assert np.all(out["declared"] == 0)
     cache = setup.diagnoser.prepare(jnp.zeros(3, bool), jnp.float64)
     M = setup.diagnoser.num_models
@@ -710,7 +710,7 @@ def test_missing_measurements_follow_the_markov_prediction(sim1):
     stretches = [(5_000, 7_000), (100_000, 102_000)]  # before any event; after both
     for a, b in stretches:
         y[a:b] = np.nan
-    _, out = runner.filter_measurements(sim1.setup, y, sim1.truth["u"], chunk=CHUNK, with_cov=True)
+    _, out = run.filter_measurements(sim1.setup, y, sim1.truth["u"], chunk=CHUNK, with_cov=True)
     for key in ("mode_probs", "mean", "cov"):
         assert not np.any(np.isnan(out[key])), key
     missing = np.zeros(y.shape[0], bool)
@@ -912,9 +912,9 @@ def test_no_recompilation_on_a_second_run_with_new_data():
     assert compiles, "the first call compiled nothing: this check cannot detect recompilation"
     with count_backend_compiles() as compiles:
         second = uimm_jax.run_scenario(scenario, seed=2)
-        setup = runner.setup_scenario(scenario)
-        other = runner.simulate_scenario(setup, seed=3)
-        _, out = runner.filter_measurements(setup, other["y"], other["u"])
+        setup = run.setup_scenario(scenario)
+        other = run.simulate_scenario(setup, seed=3)
+        _, out = run.filter_measurements(setup, other["y"], other["u"])
     assert compiles == [], f"a second call with same shapes recompiled: {compiles}"
     assert not np.array_equal(first.truth["y"], second.truth["y"])  # new data
     assert not np.array_equal(out["mode_probs"], second.outputs["mode_probs"])

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from uimm_jax import build_diagnoser, fault_table, setup_scenario
+from uimm_jax.engine.metrics import first_steps
 from uimm_jax.plants.dynamics import make_dynamics
 from uimm_jax.plants.hydraulic_actuator import HYDRAULIC_ACTUATOR as HA
 from uimm_jax.scenario.parse import load_scenario, parse_scenario
@@ -26,13 +27,11 @@ PAPER = {
 }
 
 
-def _bench():
-    bench_dir = str(ROOT / "benchmarks")  # the script imports its sibling ``_common``
+def _bench(name="bench_model_count"):
+    bench_dir = str(ROOT / "benchmarks")  # the script imports its siblings (``_common``...)
     if bench_dir not in sys.path:
         sys.path.insert(0, bench_dir)
-    spec = importlib.util.spec_from_file_location(
-        "bench_model_count", ROOT / "benchmarks" / "bench_model_count.py"
-    )
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
@@ -119,7 +118,7 @@ def test_setup_builds_the_ten_fault_uimm_bank():
 
 
 def test_multifault_generator():
-    bench = _bench()
+    bench = _bench("_model_count_cases")
     names = list(HA.fault_library)
     for F, k in [(1, 1), (6, 3), (10, 4)]:
         for r in range(5):
@@ -139,6 +138,14 @@ def test_multifault_generator():
 
 def test_benchmark_metrics_on_hand_made_codes():
     bench = _bench()
+
+    def metrics_of(truth, declared, events):
+        onset = np.full(3, -1)
+        for j, s in events:
+            onset[j] = s
+        decl = first_steps(declared, 3)
+        return bench.run_metrics(decl, onset, int(np.sum(truth == truth)), len(truth), 1e-4)
+
     N = 100
     truth = np.zeros(N, int)
     truth[20:] = 1
@@ -146,7 +153,7 @@ def test_benchmark_metrics_on_hand_made_codes():
     declared = np.zeros(N, int)
     declared[25:] = 1
     declared[52:] |= 2
-    m = bench.run_metrics(truth.copy(), declared, truth, [(0, 20), (1, 50)], 1e-4)
+    m = metrics_of(truth, declared, [(0, 20), (1, 50)])
     assert m["false_declarations"] == 0 and m["mode_accuracy"] == 1.0
     assert [e["isolated"] for e in m["events"]] == [True, True]
     assert m["events"][0]["delay_s"] == pytest.approx(5e-4)
@@ -156,7 +163,7 @@ def test_benchmark_metrics_on_hand_made_codes():
     declared = np.zeros(N, int)
     declared[22:] = 4
     declared[30:] = 5
-    m = bench.run_metrics(truth, declared, truth, [(0, 20)], 1e-4)
+    m = metrics_of(truth, declared, [(0, 20)])
     assert m["false_declarations"] == 1
     assert m["events"][0]["detected"] and not m["events"][0]["isolated"]
     # two faults with one onset, declared one after the other: both isolated
@@ -165,5 +172,5 @@ def test_benchmark_metrics_on_hand_made_codes():
     declared = np.zeros(N, int)
     declared[25:] = 2
     declared[40:] = 3
-    m = bench.run_metrics(truth, declared, truth, [(0, 20), (1, 20)], 1e-4)
+    m = metrics_of(truth, declared, [(0, 20), (1, 20)])
     assert [e["isolated"] for e in m["events"]] == [True, True]

@@ -1,4 +1,4 @@
-"""float32 mode (uimm_jax.scaling): exact scaling, and agreement with float64.
+"""float32 mode (uimm_jax.studies.float32): exact scaling, and agreement with float64.
 
 The 1e6-step comparison on the shipped paper scenarios (with the speed-up) is
 ``benchmarks/float32_agreement.py``; here the tuned scenarios run for 1 s.
@@ -18,8 +18,8 @@ from _robustness_helpers import CHUNK, all_finite, short_dict, short_scenario, w
 from uimm_jax import cli
 from uimm_jax.engine.imm import HEALTH_COV_REPAIRED
 from uimm_jax.errors import UIMMWarning
-from uimm_jax.runner import filter_measurements, run_scenario, setup_scenario, summarize
-from uimm_jax.scaling import (
+from uimm_jax.scenario.parse import parse_scenario
+from uimm_jax.studies.float32 import (
     RESOLUTION_LIMIT,
     Scaling,
     _warn_if_unresolvable,
@@ -29,7 +29,7 @@ from uimm_jax.scaling import (
     scale_scenario,
     scaled_plant,
 )
-from uimm_jax.scenario.parse import parse_scenario
+from uimm_jax.studies.run import filter_measurements, run_scenario, setup_scenario, summarize
 
 #: Stated tolerance on declaration times, float32 vs float64 (docs/robustness.md).
 DECLARATION_TOLERANCE_S = 1e-3

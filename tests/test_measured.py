@@ -15,13 +15,6 @@ from _robustness_helpers import CHUNK, short_scenario, write_short
 from uimm_jax import cli
 from uimm_jax.engine.imm import HEALTH_MISSING
 from uimm_jax.errors import UIMMWarning
-from uimm_jax.runner import (
-    filter_measurements,
-    run_scenario,
-    scenario_inputs,
-    setup_scenario,
-    simulate_scenario,
-)
 from uimm_jax.scenario.measured import (
     MeasuredData,
     MeasurementError,
@@ -29,6 +22,13 @@ from uimm_jax.scenario.measured import (
     load_measurements,
     measured_data,
 )
+from uimm_jax.studies.run import (
+    filter_measurements,
+    run_scenario,
+    setup_scenario,
+    simulate_scenario,
+)
+from uimm_jax.studies.truth import scenario_inputs
 
 
 @pytest.fixture(scope="module")

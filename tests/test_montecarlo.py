@@ -2,7 +2,7 @@
 
 The sweep's fused kernel (truth + diagnoser + metrics in one scan over a batch of runs) is
 checked against a Python loop of single runs built from the engine's single-run pieces
-(``truth_step`` in a scan, ``runner.filter_measurements``, ``runner.summarize``) with the
+(``truth_step`` in a scan, ``run.filter_measurements``, ``run.summarize``) with the
 same per-run keys; the onset draws are recomputed here from the documented key recipe.
 The sharded run (4 forced CPU devices) runs in a subprocess started when the module's
 fixture is first used, in parallel with the in-process tests.
@@ -22,12 +22,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from uimm_jax import montecarlo as mc
-from uimm_jax import runner
+from uimm_jax.engine import metrics
+from uimm_jax.engine.truth import truth_step
 from uimm_jax.errors import ScenarioError
 from uimm_jax.scenario.parse import load_scenario, parse_scenario
+from uimm_jax.scenario.sweep import sweep_spec
 from uimm_jax.scenario.write import scenario_to_dict
-from uimm_jax.simulate import truth_step
+from uimm_jax.studies import run
+from uimm_jax.studies import sweep as mc
+from uimm_jax.studies.sweep_outputs import SweepResult
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED = 7
@@ -82,7 +85,7 @@ _SUBPROCESS = textwrap.dedent(
     jax.config.update("jax_enable_x64", True)
     import numpy as np
     from test_montecarlo import small_scenario
-    from uimm_jax import montecarlo as mc
+    from uimm_jax.studies import sweep as mc
 
     assert len(jax.devices()) == 4, jax.devices()
     res = mc.run_sweep(small_scenario())
@@ -129,7 +132,7 @@ def sweep(sharded_proc):
 
 def test_spec_defaults_from_scenario():
     sc = load_scenario(ROOT / "scenarios" / "paper_sim2_tuned.toml")
-    spec = mc.sweep_spec(sc)
+    spec = sweep_spec(sc)
     assert spec.runs == 100 and spec.seed == sc.seed
     assert spec.methods == ("uimm",) and spec.magnitudes == (1.0,)
     assert spec.fault_free
@@ -138,7 +141,7 @@ def test_spec_defaults_from_scenario():
         ("valve_wear", (30.0, 30.0)),
         ("air_in_oil", (60.0, 60.0)),
     ]
-    spec = mc.sweep_spec(sc, runs=3, methods=["imm", "uimm"], magnitudes=[0.5, 1.0])
+    spec = sweep_spec(sc, runs=3, methods=["imm", "uimm"], magnitudes=[0.5, 1.0])
     assert (spec.runs, spec.methods, spec.magnitudes) == (3, ("imm", "uimm"), (0.5, 1.0))
     cells = mc._cells(spec)
     assert len(cells) == 2 * (1 + 2)
@@ -217,7 +220,7 @@ def test_spec_defaults_from_scenario():
 def test_spec_errors_name_the_field(patch, field, words):
     sc = small_scenario({**SWEEP, **patch})
     with pytest.raises(ScenarioError) as err:
-        mc.sweep_spec(sc)
+        sweep_spec(sc)
     assert err.value.field == field
     assert words in str(err.value)
     assert str(err.value).startswith("small: " + field)
@@ -226,13 +229,13 @@ def test_spec_errors_name_the_field(patch, field, words):
 def test_nothing_to_run_is_an_error():
     sc = small_scenario({"fault_free": False, "cases": []})
     with pytest.raises(ScenarioError, match="nothing to run"):
-        mc.sweep_spec(sc)
+        sweep_spec(sc)
 
 
 def test_argument_overrides_are_validated():
     sc = small_scenario()
     with pytest.raises(ScenarioError) as err:
-        mc.sweep_spec(sc, runs=0)
+        sweep_spec(sc, runs=0)
     assert err.value.field == "runs"
 
 
@@ -245,9 +248,9 @@ def test_argument_overrides_are_validated():
 def test_wilson_interval_matches_scipy(k, n):
     stats = pytest.importorskip("scipy.stats")
     ref = stats.binomtest(k, n).proportion_ci(confidence_level=0.95, method="wilson")
-    lo, hi = mc.wilson_interval(k, n)
+    lo, hi = metrics.wilson_interval(k, n)
     np.testing.assert_allclose([lo, hi], [ref.low, ref.high], rtol=1e-12, atol=1e-15)
-    assert mc.wilson_interval(0, 0) is None
+    assert metrics.wilson_interval(0, 0) is None
 
 
 def test_confusion_definition():
@@ -271,7 +274,7 @@ def test_confusion_definition():
             [25, 25, -1],  # tie within the window: each event gets its own fault
         ]
     )
-    got = mc._confusion(onset, decl, N)
+    got = metrics.confusion(onset, decl, N)
     want = np.zeros((4, 4), int)
     want[0, 3] += 1  # run 0 fault-free period
     want[1, 0] += 1
@@ -287,10 +290,10 @@ def test_confusion_definition():
     want[1, 0] += 1
     want[2, 1] += 1
     np.testing.assert_array_equal(got, want)
-    # Per run (what tuning.evaluate's "every fault declared and isolated" uses): only runs
+    # Per run (what tune.evaluate's "every fault declared and isolated" uses): only runs
     # 0 and 4 isolate every event; the fault-free run 3 has no event to isolate.
     fake = types.SimpleNamespace(onset_step=onset[None], decl_step=decl[None], num_steps=N)
-    np.testing.assert_array_equal(mc.SweepResult.isolated(fake), [[True, False, False, True, True]])
+    np.testing.assert_array_equal(SweepResult.isolated(fake), [[True, False, False, True, True]])
 
 
 # --------------------------------------------------------------------------------------
@@ -300,7 +303,7 @@ def test_confusion_definition():
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 2))
 def _simulate_one(dyn, dt, num_steps, plan, signal, key):
-    from uimm_jax.simulate import input_value
+    from uimm_jax.engine.truth import input_value
 
     def body(x, k):
         t = k.astype(x.dtype) * dt
@@ -313,7 +316,7 @@ def _simulate_one(dyn, dt, num_steps, plan, signal, key):
 
 
 def _onset_draw(seed, runs, r, e, lo, hi, dt):
-    """The documented recipe, recomputed independently of montecarlo.run_keys."""
+    """The documented recipe, recomputed independently of engine.truth.run_keys."""
     if hi == lo:
         return int(round(lo / dt))
     key = jax.random.split(jax.random.PRNGKey(seed), runs)[r]
@@ -338,7 +341,7 @@ def _reference(sc, cell, r):
             )
     d["events"] = events
     one = parse_scenario(d)
-    setup = runner.setup_scenario(one, cell.method, magnitude_scale=cell.magnitude or 1.0)
+    setup = run.setup_scenario(one, cell.method, magnitude_scale=cell.magnitude or 1.0)
     plan = setup.plan._replace(
         Gq=setup.plan.Gq * cell.noise_scale, Gr=setup.plan.Gr * cell.noise_scale
     )
@@ -346,8 +349,8 @@ def _reference(sc, cell, r):
     u, x, y, code = _simulate_one(
         setup.diagnoser.dyn, float(one.dt), one.num_steps, plan, setup.signal, key
     )
-    _, out = runner.filter_measurements(setup, np.asarray(y), np.asarray(u))
-    summary = runner.summarize(setup, np.asarray(code), out, runtime_s=1.0)
+    _, out = run.filter_measurements(setup, np.asarray(y), np.asarray(u))
+    summary = run.summarize(setup, np.asarray(code), out, runtime_s=1.0)
     return summary, setup.event_steps, np.asarray(x), out["mean"]
 
 
@@ -517,7 +520,7 @@ def test_sweep_files_are_in_sync_with_the_tuned_scenarios(name):
             b["time"] * scale,
             b["magnitude"],
         )
-    spec = mc.sweep_spec(sweep_sc)
+    spec = sweep_spec(sweep_sc)
     assert spec.fault_free and set(spec.methods) == {"uimm", "imm"}
     cases = {c.name: c.events for c in spec.cases}
     for case, ref in (("sim1", sim1["events"]), ("sim2", scenario_to_dict(sim2)["events"])):

@@ -14,8 +14,8 @@ from hypothesis import strategies as st
 from _engine_helpers import run_imm_filter
 from _reference import naive_imm
 from _robustness_helpers import CHUNK, all_finite, short_dict
-from uimm_jax.runner import filter_measurements, setup_scenario, simulate_scenario
 from uimm_jax.scenario.parse import parse_scenario
+from uimm_jax.studies.run import filter_measurements, setup_scenario, simulate_scenario
 
 M, n, m, p, N = 3, 2, 2, 1, 60
 

@@ -20,17 +20,17 @@ from uimm_jax import Fault, fault_table
 from uimm_jax.engine.imm import HEALTH_COV_REPAIRED, HEALTH_GATED, HEALTH_MISSING
 from uimm_jax.engine.uimm import build_diagnoser
 from uimm_jax.errors import UIMMWarning
-from uimm_jax.filtering import LinearGaussianBank, imm_filter
 from uimm_jax.plants.base import LinearPlant, NonlinearPlant
 from uimm_jax.plants.registry import get_plant, register_plant
-from uimm_jax.runner import (
+from uimm_jax.scenario.measured import degrade_measurements
+from uimm_jax.studies.imm_filter import LinearGaussianBank, imm_filter
+from uimm_jax.studies.run import (
     filter_measurements,
     run_scenario,
     setup_scenario,
     simulate_scenario,
     summarize,
 )
-from uimm_jax.scenario.measured import degrade_measurements
 
 # --------------------------------------------------------------------------------------
 # Validation of the Python API: every bad argument is named, with what is expected

@@ -23,9 +23,9 @@ import numpy as np
 import pytest
 
 import uimm_jax
-from uimm_jax import tuning
 from uimm_jax.scenario.parse import load_scenario, parse_scenario
 from uimm_jax.scenario.write import dump_scenario
+from uimm_jax.studies import tune
 
 ROOT = Path(__file__).resolve().parents[1]
 STEPS = 300
@@ -80,9 +80,9 @@ def scalar_scenario():
 
 
 def _problem(sc, config):
-    cases = [tuning.scenario_case(sc), tuning.RunCase("fault-free", ())]
-    problem, batch = tuning.make_batch(sc, cases, 1, seed=11)
-    return problem, tuning.precompute_truth(problem, batch)
+    cases = [tune.scenario_case(sc), tune.RunCase("fault-free", ())]
+    problem, batch = tune.make_batch(sc, cases, 1, seed=11)
+    return problem, tune.precompute_truth(problem, batch)
 
 
 @pytest.fixture(scope="module")
@@ -92,11 +92,11 @@ def small():
     # Every tunable parameter is tuned; one scan segment, no checkpoint: the smallest
     # compiled gradient (the checkpointed nested scan is compared with the plain one by
     # benchmarks/bench_gradient.py --check).
-    config = tuning.TuneConfig(tune_noise=True, segment=STEPS, checkpoint=False)
+    config = tune.TuneConfig(tune_noise=True, segment=STEPS, checkpoint=False)
     problem, batch = _problem(sc, config)
     P = np.array([[0.9, 0.06, 0.04], [0.1, 0.85, 0.05], [0.05, 0.05, 0.9]])
     # A hold away from rounding boundaries, noise scales off their defaults.
-    raw = tuning.init_params(P, 0.9, 3, config)
+    raw = tune.init_params(P, 0.9, 3, config)
     raw = raw._replace(log_q_scale=jnp.asarray(0.1), log_r_scale=jnp.asarray(-0.2))
     return sc, config, problem, batch, raw
 
@@ -127,7 +127,7 @@ def check_gradient(config, problem, batch, raw, num_params):
     parameters' gradient is that of ``w_ce * ce`` and the decision parameters' that of
     the loss.
     """
-    _, vg = tuning.make_loss_fn(problem, config)
+    _, vg = tune.make_loss_fn(problem, config)
     (loss0, parts0), grads = vg(raw, batch)
     assert np.isfinite(float(loss0))
     g, _ = _flat(grads)
@@ -180,8 +180,8 @@ def test_gradient_matches_central_differences(small, couple):
 def test_decoupled_gradient_differs_from_coupled(small):
     # The default leaves the decision terms out of the filter's gradient: a real change.
     sc, config, problem, batch, raw = small
-    _, vg0 = tuning.make_loss_fn(problem, dataclasses.replace(config, couple=False))
-    _, vg1 = tuning.make_loss_fn(problem, dataclasses.replace(config, couple=True))
+    _, vg0 = tune.make_loss_fn(problem, dataclasses.replace(config, couple=False))
+    _, vg1 = tune.make_loss_fn(problem, dataclasses.replace(config, couple=True))
     (l0, _), g0 = vg0(raw, batch)
     (l1, _), g1 = vg1(raw, batch)
     assert float(l0) == pytest.approx(float(l1), rel=1e-12)  # same loss value
@@ -194,10 +194,10 @@ def test_decoupled_gradient_differs_from_coupled(small):
     not os.environ.get("UIMM_JAX_SLOW_TESTS"), reason="set UIMM_JAX_SLOW_TESTS=1 (minutes)"
 )
 def test_gradient_matches_central_differences_actuator():
-    sc = tuning.rescale_scenario(paper_sim1(), STEPS * 1e-4)
-    config = tuning.TuneConfig(tune_noise=True, segment=STEPS, checkpoint=False)
+    sc = tune.rescale_scenario(paper_sim1(), STEPS * 1e-4)
+    config = tune.TuneConfig(tune_noise=True, segment=STEPS, checkpoint=False)
     problem, batch = _problem(sc, config)
-    raw = tuning.init_params(sc.transition_matrix(), 0.9, 3, config)
+    raw = tune.init_params(sc.transition_matrix(), 0.9, 3, config)
     raw = raw._replace(log_q_scale=jnp.asarray(0.1), log_r_scale=jnp.asarray(-0.2))
     check_gradient(config, problem, batch, raw, 16 + 4)
     check_gradient(dataclasses.replace(config, couple=True), problem, batch, raw, 16 + 4)
@@ -205,7 +205,7 @@ def test_gradient_matches_central_differences_actuator():
 
 def test_optax_loop_decreases_loss(small):
     sc, config, problem, batch, raw = small
-    res = tuning.fit(problem, batch, raw, config, iters=6, learning_rate=0.05)
+    res = tune.fit(problem, batch, raw, config, iters=6, learning_rate=0.05)
     assert res.history.shape == (6,)
     assert np.all(np.isfinite(res.history))
     assert res.history.min() < res.history[0]
@@ -215,16 +215,16 @@ def test_optax_loop_decreases_loss(small):
 
 def test_tuned_scenario_round_trips(tmp_path):
     base = paper_sim1()
-    config = tuning.TuneConfig()
-    raw = tuning.init_params(base.transition_matrix(), 0.9, 1, config)
+    config = tune.TuneConfig()
+    raw = tune.init_params(base.transition_matrix(), 0.9, 1, config)
     shifted = raw._replace(
         transition_logits=raw.transition_logits + jnp.eye(4) * 3.0,
         threshold_logit=jnp.asarray(6.0),
         log_hold=jnp.asarray(np.log(40.2)),
     )
-    settings = tuning.settings_from_params(shifted, 4, config)
+    settings = tune.settings_from_params(shifted, 4, config)
     assert settings["hold"] == 41
-    doc = tuning.tuned_scenario(base, settings)
+    doc = tune.tuned_scenario(base, settings)
     path = dump_scenario(doc, tmp_path / "tuned.toml")
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # the written file loads without warnings
@@ -233,7 +233,7 @@ def test_tuned_scenario_round_trips(tmp_path):
     assert back.filter.decision.threshold == pytest.approx(settings["threshold"], rel=1e-15)
     assert back.filter.decision.hold == 41
     assert back.name == "paper-sim1-tuned"
-    assert tuning.tuned_scenario(back, settings)["name"] == "paper-sim1-tuned"  # no stacking
+    assert tune.tuned_scenario(back, settings)["name"] == "paper-sim1-tuned"  # no stacking
     # Everything but the filter settings is the source scenario's.
     assert back.events == base.events
     np.testing.assert_array_equal(back.process_noise, base.process_noise)
@@ -245,15 +245,15 @@ def test_tuned_scenario_round_trips(tmp_path):
 @pytest.mark.parametrize("irreversible", [False, True])
 def test_structures_are_stochastic_with_finite_gradients(structure, irreversible):
     P = paper_sim1().transition_matrix()
-    config = tuning.TuneConfig(structure=structure, irreversible=irreversible)
-    raw = tuning.init_params(P, 0.9, 1, config)
+    config = tune.TuneConfig(structure=structure, irreversible=irreversible)
+    raw = tune.init_params(P, 0.9, 1, config)
 
     def f(logits):
-        lt = tuning.constrain(raw._replace(transition_logits=logits), 4, config).log_transition
+        lt = tune.constrain(raw._replace(transition_logits=logits), 4, config).log_transition
         # A loss that touches every entry, including the structural zeros.
         return jnp.sum(jnp.exp(lt) * jnp.arange(16.0).reshape(4, 4))
 
-    lt = np.asarray(tuning.constrain(raw, 4, config).log_transition)
+    lt = np.asarray(tune.constrain(raw, 4, config).log_transition)
     Pm = np.exp(lt)
     np.testing.assert_allclose(Pm.sum(axis=1), 1.0, rtol=1e-13)
     g = np.asarray(jax.grad(f)(raw.transition_logits))

@@ -16,19 +16,19 @@ from uimm_jax.engine.imm import IMMParams, IMMState, StepInfo, imm_step
 from uimm_jax.engine.kalman import ekf_predict, ekf_update
 from uimm_jax.engine.uimm import DiagInfo, Diagnoser, DiagParams, DiagState, build_diagnoser
 from uimm_jax.errors import ScenarioError, UIMMWarning
-from uimm_jax.filtering import IMMResult, LinearGaussianBank, imm_filter
 from uimm_jax.plants.base import Fault, LinearPlant, NonlinearPlant
 from uimm_jax.plants.registry import get_plant, list_plants, register_plant
-from uimm_jax.runner import (
+from uimm_jax.scenario.parse import load_scenario, parse_scenario
+from uimm_jax.scenario.spec import Scenario
+from uimm_jax.scenario.write import dump_scenario
+from uimm_jax.studies.imm_filter import IMMResult, LinearGaussianBank, imm_filter
+from uimm_jax.studies.run import (
     RunResult,
     filter_measurements,
     run_scenario,
     setup_scenario,
     simulate_scenario,
 )
-from uimm_jax.scenario.parse import load_scenario, parse_scenario
-from uimm_jax.scenario.spec import Scenario
-from uimm_jax.scenario.write import dump_scenario
 
 try:
     __version__ = version("uimm-jax")

@@ -127,15 +127,15 @@ def _print_summary(s: dict) -> None:
 
 def _cmd_run(args) -> int:
     from uimm_jax._checks import check_out_dir, check_seed
-    from uimm_jax.runner import run_scenario
     from uimm_jax.scenario.parse import load_scenario
+    from uimm_jax.studies.run import run_scenario
 
     check_seed(args.seed, "--seed")
     sc = load_scenario(args.scenario)
     out = check_out_dir(args.out)  # before the run, not after it
     method = args.method or sc.filter.method
-    if args.float32:  # scaled float32 diagnoser (uimm_jax.scaling, docs/robustness.md)
-        from uimm_jax.scaling import run_scenario_float32 as run_scenario
+    if args.float32:  # scaled float32 diagnoser (uimm_jax.studies.float32, docs/robustness.md)
+        from uimm_jax.studies.float32 import run_scenario_float32 as run_scenario
     measurements = None
     if args.measurements:
         from uimm_jax.scenario.measured import load_measurements

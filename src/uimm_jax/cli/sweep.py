@@ -1,7 +1,7 @@
 """Command line: ``uimm-jax sweep SCENARIO [--runs N] [--out DIR] ...`` (Monte Carlo study).
 
 Registered by :func:`uimm_jax.cli.build_parser`.  Runs
-:func:`uimm_jax.montecarlo.run_sweep` with the scenario's ``[sweep]`` table, overridden by
+:func:`uimm_jax.studies.sweep.run_sweep` with the scenario's ``[sweep]`` table, overridden by
 the options, and writes ``results.json``, ``results.csv`` and the figures (see
 ``docs/montecarlo.md``).  The CLI has already enabled float64 and the recommended XLA CPU
 flags when the command runs.
@@ -139,8 +139,10 @@ def _cmd_sweep(args) -> int:
                 f"{len(jax.devices())} device(s)"
             )
 
-    from uimm_jax.montecarlo import run_sweep, sweep_spec, write_sweep_outputs
     from uimm_jax.scenario.parse import load_scenario
+    from uimm_jax.scenario.sweep import sweep_spec
+    from uimm_jax.studies.sweep import run_sweep
+    from uimm_jax.studies.sweep_outputs import write_sweep_outputs
 
     sc = load_scenario(args.scenario)
     out = check_out_dir(args.out)

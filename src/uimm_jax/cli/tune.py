@@ -1,9 +1,9 @@
 """``uimm-jax tune SCENARIO [--runs N] [--iters K] --out tuned.toml``: gradient tuning.
 
 Tunes the scenario's UIMM transition matrix, threshold and persistence with optax on
-simulated runs of the scenario (:mod:`uimm_jax.tuning`), writes the scenario with the
+simulated runs of the scenario (:mod:`uimm_jax.studies.tune`), writes the scenario with the
 tuned ``[filter]`` settings, a loss-curve PNG and a JSON record, and prints a before/after
-table of Monte Carlo metrics (:func:`uimm_jax.montecarlo.run_sweep`, exact hard rule) on
+table of Monte Carlo metrics (:func:`uimm_jax.studies.sweep.run_sweep`, exact hard rule) on
 held-out seeds: the evaluation seed must differ from the training seed.
 
 Training runs may be shorter than the scenario (``--train-duration``; event times are
@@ -130,8 +130,8 @@ def _table(rows: list[tuple[str, str, str]]) -> str:
 
 
 def _cmd_tune(args) -> int:
-    from uimm_jax import tuning
     from uimm_jax.scenario.parse import load_scenario
+    from uimm_jax.studies import tune
 
     quiet = args.quiet
     log = (lambda *a: None) if quiet else (lambda *a: print(*a, file=sys.stderr, flush=True))
@@ -143,14 +143,14 @@ def _cmd_tune(args) -> int:
         raise ValueError("--runs and --iters must be >= 1 and --warmup >= 0")
     try:
         w = tuple(float(v) for v in args.weights.split(","))
-        weights = tuning.LossWeights(*w)
+        weights = tune.LossWeights(*w)
     except (TypeError, ValueError) as err:
         raise ValueError(f"--weights: expected three numbers ce,delay,false: {err}") from None
     train_seed = args.seed if args.seed is not None else int(sc.seed) + 1_000_003
     eval_seed = args.eval_seed if args.eval_seed is not None else int(sc.seed)
     if train_seed == eval_seed and not args.no_eval:
         raise ValueError("--seed and --eval-seed must differ (held-out evaluation)")
-    config = tuning.TuneConfig(
+    config = tune.TuneConfig(
         structure=args.structure,
         irreversible=args.irreversible,
         tune_hold=not args.fixed_hold,
@@ -176,9 +176,9 @@ def _cmd_tune(args) -> int:
         js.write_text(json.dumps(record, indent=2, default=_plain) + "\n")
     if not args.no_eval:
         eval_dur = float(args.eval_duration or sc.duration)
-        before_sc = tuning.rescale_scenario(sc, eval_dur)
-        after_sc = tuning.rescale_scenario(tuned_sc, eval_dur)
-        extra = [tuning.rescale_scenario(a, eval_dur) for a in also]
+        before_sc = tune.rescale_scenario(sc, eval_dur)
+        after_sc = tune.rescale_scenario(tuned_sc, eval_dur)
+        extra = [tune.rescale_scenario(a, eval_dur) for a in also]
         log(
             f"held-out evaluation: {args.eval_runs} runs per case of {eval_dur:g} s, "
             f"seed {eval_seed} (training seed {record.get('train_seed', train_seed)})"
@@ -191,7 +191,7 @@ def _cmd_tune(args) -> int:
             "duration_s": eval_dur,
         }
         before = _reusable_before(args.before_from, eval_args, log)
-        table, ev = tuning.before_after(
+        table, ev = tune.before_after(
             before_sc,
             after_sc,
             extra,
@@ -235,33 +235,32 @@ def _train(args, sc, config, train_seed, log):
     """Fit the settings, write the tuned scenario and its loss curve: ``(tuned, record)``."""
     import numpy as np
 
-    from uimm_jax import tuning
     from uimm_jax.scenario.parse import parse_scenario
     from uimm_jax.scenario.write import dump_scenario
-    from uimm_jax.studies import plots, plots_sweep
+    from uimm_jax.studies import plots, plots_sweep, tune
 
     train_dur = float(args.train_duration or sc.duration)
-    train_sc = tuning.rescale_scenario(sc, train_dur)
-    cases = [tuning.scenario_case(train_sc)]
+    train_sc = tune.rescale_scenario(sc, train_dur)
+    cases = [tune.scenario_case(train_sc)]
     counts = [args.runs]
     if args.fault_free_runs > 0:
-        cases.append(tuning.RunCase("fault-free", ()))
+        cases.append(tune.RunCase("fault-free", ()))
         counts.append(args.fault_free_runs)
     log(
         f"tuning {sc.name} from {args.scenario}: {sum(counts)} training runs of "
         f"{train_dur:g} s (seed {train_seed}), {args.iters} adam iterations, "
         f"structure {args.structure}"
     )
-    problem, batch = tuning.make_batch(train_sc, cases, counts, train_seed)
+    problem, batch = tune.make_batch(train_sc, cases, counts, train_seed)
     t0 = time.perf_counter()
-    batch = tuning.precompute_truth(problem, batch)
+    batch = tune.precompute_truth(problem, batch)
     log(f"  simulated the training truth in {time.perf_counter() - t0:.1f} s")
     M = problem.num_models
-    start = tuning.init_params(
+    start = tune.init_params(
         sc.transition_matrix(), sc.filter.decision.threshold, sc.filter.decision.hold, config
     )
     log("  compiling the loss and its gradient (one-off; minutes on a loaded CPU) ...")
-    res = tuning.fit(
+    res = tune.fit(
         problem,
         batch,
         start,
@@ -271,8 +270,8 @@ def _train(args, sc, config, train_seed, log):
         warmup=args.warmup,
         progress=not args.quiet,
     )
-    settings = tuning.settings_from_params(res.params, M, config)
-    doc = tuning.tuned_scenario(sc, settings)
+    settings = tune.settings_from_params(res.params, M, config)
+    doc = tune.tuned_scenario(sc, settings)
     tuned_sc = parse_scenario(doc, source=str(args.out))
     out = Path(args.out)
     dump_scenario(tuned_sc, out)
@@ -299,7 +298,7 @@ def _train(args, sc, config, train_seed, log):
             "hold_temperature": config.hold_temperature,
             "weights": dict(config.weights._asdict()),
         },
-        "start": _plain(tuning.settings_from_params(start, M, config)),
+        "start": _plain(tune.settings_from_params(start, M, config)),
         "tuned": _plain(settings),
         "best_iteration": res.best_iteration,
         "history": res.history.tolist(),

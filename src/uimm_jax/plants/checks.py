@@ -2,7 +2,7 @@
 
 :func:`check_plant_structure` runs when a plant is constructed (no JAX);
 :func:`check_plant_functions` evaluates the plant's functions once, at first use
-(:func:`uimm_jax.runner.setup_scenario`).  Both raise ``ValueError`` naming the plant.
+(:func:`uimm_jax.studies.run.setup_scenario`).  Both raise ``ValueError`` naming the plant.
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ def check_plant_functions(plant) -> None:
     A ``LinearPlant``'s ``matrices(p)`` must return ``(A, B, C, d)`` of shapes ``(n, n)``,
     ``(n, p)``, ``(m, n)``, ``(m,)``, finite; a ``NonlinearPlant``'s ``f(x, u, p)`` must
     return ``(n,)`` and ``h(x, p)`` ``(m,)`` at ``x = 0``, ``u = 0``.  Uses JAX: called at
-    first use (:func:`uimm_jax.runner.setup_scenario`), not at registration.
+    first use (:func:`uimm_jax.studies.run.setup_scenario`), not at registration.
     """
     import jax
     import jax.numpy as jnp

@@ -1,6 +1,6 @@
 """Measured data: read a user's measurements (CSV, ``.npy`` or ``.npz``) for a scenario.
 
-The diagnoser of a scenario (:func:`uimm_jax.runner.setup_scenario`) runs over measured
+The diagnoser of a scenario (:func:`uimm_jax.studies.run.setup_scenario`) runs over measured
 data exactly as over simulated data.  The file layout is documented in
 ``docs/measurements.md``; in short:
 
@@ -21,7 +21,7 @@ mode probabilities follow the Markov prediction).  Infinite values are refused, 
 missing inputs or times.
 
 :func:`load_measurements` returns a :class:`MeasuredData`, which
-:func:`uimm_jax.runner.run_scenario` accepts as ``measurements=`` (the CLI's
+:func:`uimm_jax.studies.run.run_scenario` accepts as ``measurements=`` (the CLI's
 ``uimm-jax run SCENARIO --measurements FILE``).  :func:`degrade_measurements` makes the
 dropouts and outliers of the robustness study (``docs/robustness.md``).
 """

@@ -2,7 +2,7 @@
 
 :func:`sweep_spec` checks a scenario's ``[sweep]`` table (schema in ``docs/montecarlo.md``),
 with keyword arguments overriding it, and returns a :class:`SweepSpec`; the Monte Carlo
-runner (:mod:`uimm_jax.montecarlo`) only reads that spec.  Errors are
+runner (:mod:`uimm_jax.studies.sweep`) only reads that spec.  Errors are
 :class:`~uimm_jax.errors.ScenarioError` naming the field (``[sweep].runs``).
 """
 

@@ -46,7 +46,7 @@ _CHECKED_PLANTS: weakref.WeakSet = weakref.WeakSet()
 
 
 def check_setup_args(scenario, method, dtype, magnitude_scale) -> None:
-    """Arguments of :func:`uimm_jax.runner.setup_scenario` (and its plant, once per plant)."""
+    """Arguments of :func:`uimm_jax.studies.run.setup_scenario` (and its plant, once per plant)."""
     check_scenario(scenario)
     if method is not None:
         check_method(method)
@@ -61,7 +61,7 @@ def check_setup_args(scenario, method, dtype, magnitude_scale) -> None:
 
 
 def check_run_data(setup, y, u, chunk) -> tuple[np.ndarray, np.ndarray | None]:
-    """Arguments of :func:`uimm_jax.runner.filter_measurements`: ``(N, m)`` / ``(N, p)``."""
+    """Arguments of :func:`uimm_jax.studies.run.filter_measurements`: ``(N, m)`` / ``(N, p)``."""
     plant = setup.scenario.plant
     check_positive_int(chunk, "chunk")
     y = check_measurements(y, plant.output_dim)

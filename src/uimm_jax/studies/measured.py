@@ -21,15 +21,15 @@ def truth_for_measurements(
     scenario's input signal.
 
     Args:
-        setup: the :class:`~uimm_jax.runner.RunSetup`.
+        setup: the :class:`~uimm_jax.studies.run.RunSetup`.
         measurements: a :class:`MeasuredData` or an ``(N, m)`` array.
         scenario_inputs: ``scenario_inputs(scenario, N) -> (N, p)``, the scenario's input
-            sequence (:func:`uimm_jax.runner.scenario_inputs`), used when the data has no
+            sequence (:func:`uimm_jax.studies.truth.scenario_inputs`), used when the data has no
             inputs.
 
     Returns:
         dict with ``u`` (N, p), ``x`` (N, n) NaN, ``y`` (N, m), ``truth`` (N,) fault-set
-        codes and ``t`` (N,), like :func:`uimm_jax.runner.simulate_scenario`.
+        codes and ``t`` (N,), like :func:`uimm_jax.studies.run.simulate_scenario`.
     """
     sc = setup.scenario
     data = (

@@ -1,7 +1,7 @@
 """From a scenario to a diagnosis: build the bank, simulate the truth, filter, summarise.
 
 * :func:`setup_scenario` builds (and caches) the diagnoser, its parameters and the truth
-  plan from a :class:`~uimm_jax.scenarios.Scenario`.
+  plan from a :class:`~uimm_jax.scenario.spec.Scenario`.
 * :func:`simulate_scenario` runs the truth (one ``lax.scan``, chunked).
 * :func:`filter_measurements` runs the diagnoser over measurements (one ``lax.scan``,
   chunked) -- simulated ones or a user's own data.
@@ -25,25 +25,21 @@ import jax.numpy as jnp
 import numpy as np
 
 from uimm_jax._checks import check_positive_int, check_seed
+from uimm_jax.engine import metrics
 from uimm_jax.engine.bank import FaultTable, fault_table
+from uimm_jax.engine.scan import FILTER_OUTPUTS, filter_chunk, scan_chunked, truth_scan
+from uimm_jax.engine.truth import InputSignal, TruthPlan
 from uimm_jax.engine.uimm import Diagnoser, DiagParams, build_diagnoser, make_params
 from uimm_jax.errors import UIMMWarning
-from uimm_jax.filtering import scan_chunked
 from uimm_jax.plants.dynamics import make_dynamics
-from uimm_jax.simulate import (
-    InputSignal,
-    TruthPlan,
-    finite_phases,
-    input_value,
-    noise_factor,
-    truth_step,
-)
 from uimm_jax.studies.checks import check_run_data, check_setup_args
 from uimm_jax.studies.measured import truth_for_measurements
+from uimm_jax.studies.truth import build_truth_plan, scenario_inputs, scenario_onsets
 
 __all__ = [
     "RunResult",
     "RunSetup",
+    "execute_run",
     "filter_measurements",
     "run_scenario",
     "setup_scenario",
@@ -64,8 +60,8 @@ class RunSetup:
         diagnoser: the :class:`~uimm_jax.engine.uimm.Diagnoser` (static).
         params: its :class:`~uimm_jax.engine.uimm.DiagParams`.
         init_state: initial diagnoser state (one run).
-        signal: the :class:`~uimm_jax.simulate.InputSignal`.
-        plan: the truth :class:`~uimm_jax.simulate.TruthPlan`.
+        signal: the :class:`~uimm_jax.engine.truth.InputSignal`.
+        plan: the truth :class:`~uimm_jax.engine.truth.TruthPlan`.
         table: the fault table of the bank.
         event_steps: step of each truth event.
         transition: the host transition matrix used.
@@ -94,11 +90,6 @@ def _cached_diagnoser(plant, dt, method, gate, faults_key, nominal_key):
     ]
     dyn = make_dynamics(plant, dt, np.array(refs))
     return build_diagnoser(method, dyn, table, gate=gate), table
-
-
-@functools.partial(jax.jit, static_argnums=0)
-def _jit_dyn_prepare(dyn, theta):
-    return dyn.prepare(theta)
 
 
 def resolve_filter_settings(scenario, method: str) -> tuple[np.ndarray, np.ndarray]:
@@ -145,7 +136,7 @@ def setup_scenario(
     """Compile a scenario into a :class:`RunSetup` (diagnoser cached across calls).
 
     Args:
-        scenario: a :class:`~uimm_jax.scenarios.Scenario`.
+        scenario: a :class:`~uimm_jax.scenario.spec.Scenario`.
         method: ``"uimm"`` or ``"imm"``; default: the scenario's.
         dtype: float dtype (default: JAX's default float; float64 with x64 enabled).
         magnitude_scale: multiplies every event's magnitude (truth only).
@@ -177,39 +168,8 @@ def setup_scenario(
     )
     init = diag.init(np.asarray(flt.initial_mean), np.asarray(flt.initial_cov), mu0, (), dtype)
     # Truth plan: phase 0 nominal, then one phase per event (faults accumulate).
-    names = table.names
-    present = np.zeros(len(names), bool)
-    mags = np.ones(len(names))
-    thetas = [table.nominal.copy()]
-    codes = [0]
-    steps = []
-    for ev in scenario.events:
-        j = names.index(ev.fault)
-        present[j] = True
-        mags[j] = ev.magnitude * magnitude_scale
-        thetas.append(table.theta_numpy(present, mags))
-        codes.append(int(np.sum(present * (1 << np.arange(len(names))))))
-        steps.append(int(round(ev.time / scenario.dt)))
-    th = jnp.asarray(np.array(thetas).T, dtype)  # (P, K)
-    cache = _jit_dyn_prepare(diag.dyn, th)
-    ok = finite_phases(cache, len(thetas))
-    if not ok.all():
-        k = int(np.argmin(ok))
-        when = ", ".join(
-            f"{e.fault} (magnitude {e.magnitude * magnitude_scale!r})" for e in scenario.events[:k]
-        )
-        raise ValueError(
-            f"{scenario.source}: the truth's discretised dynamics are not finite "
-            f"{'after ' + when if k else 'at the nominal parameters'}: check "
-            "[[events]].magnitude, the fault values and [plant.params]."
-        )
-    plan = TruthPlan(
-        cache=cache,
-        event_steps=jnp.asarray(np.array(steps, np.int32).reshape(-1)),
-        true_codes=jnp.asarray(np.array(codes, np.int32)),
-        Gq=jnp.asarray(noise_factor(scenario.process_noise), dtype),
-        Gr=jnp.asarray(noise_factor(scenario.measurement_noise), dtype),
-    )
+    onset, magnitude, steps = scenario_onsets(scenario, table.names, magnitude_scale)
+    plan = build_truth_plan(scenario, diag.dyn, table, onset, magnitude, dtype=dtype)
     return RunSetup(
         scenario,
         method,
@@ -219,7 +179,7 @@ def setup_scenario(
         InputSignal.from_spec(scenario.input, dtype),
         plan,
         table,
-        np.array(steps, np.int64),
+        steps,
         P,
         mu0,
     )
@@ -233,45 +193,7 @@ def setup_scenario(
 @functools.partial(jax.jit, static_argnames=("dyn", "dt", "p"))
 def _sim_chunk(dyn, plan, signal, key, x, k0, ks, dt, p):
     del k0
-
-    def body(xc, k):
-        t = k.astype(x.dtype) * dt
-        u = jnp.full((p,), input_value(signal, t), x.dtype)
-        xn, y, code = truth_step(dyn, plan, xc, k, u, key)
-        return xn, (u, xn, y, code)
-
-    return jax.lax.scan(body, x, ks)
-
-
-@functools.partial(jax.jit, static_argnames=("diag", "with_cov"))
-def _filter_chunk(diag, params, state, k0, uy, with_cov):
-    del k0
-
-    def body(st, uy_k):
-        u, y = uy_k
-        st, info = diag.step(st, params, u, y, with_cov=with_cov)
-        out = (
-            jnp.exp(info.step.log_mode_probs),
-            info.step.mean,
-            info.recognised,
-            info.declared,
-            info.step.health,
-        )
-        if with_cov:
-            out = out + (info.step.cov,)
-        return st, out
-
-    return jax.lax.scan(body, state, uy)
-
-
-def scenario_inputs(scenario, num_steps: int | None = None, dtype=None) -> np.ndarray:
-    """The input sequence ``u_k = u(k dt)`` of a scenario, ``(N, p)`` on the host."""
-    num_steps = scenario.num_steps if num_steps is None else num_steps
-    t = np.arange(num_steps) * float(scenario.dt)
-    sig = InputSignal.from_spec(scenario.input, jnp.float64)
-    with jax.default_device(jax.devices("cpu")[0]):
-        u = np.asarray(input_value(sig, jnp.asarray(t)))
-    return np.repeat(u[:, None], scenario.plant.input_dim, axis=1).astype(dtype or np.float64)
+    return truth_scan(dyn, dt, p, plan, signal, key, x, ks)
 
 
 def simulate_scenario(
@@ -299,6 +221,7 @@ def simulate_scenario(
         dyn, setup.plan, setup.signal, key, c, k0, ks, float(sc.dt), p
     )
     _, (u, x, y, code) = scan_chunked(run, x0, sc.num_steps, chunk=chunk, progress=progress)
+    u = np.repeat(u[:, None], p, axis=1)
     t = (np.arange(sc.num_steps) + 1) * sc.dt
     bad = ~(np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(y), axis=1))
     if bad.any():
@@ -338,12 +261,10 @@ def filter_measurements(
     ys = jnp.asarray(y, dtype)
     N = ys.shape[0]
     us = jnp.asarray(scenario_inputs(sc, N) if u is None else u, dtype)
-    run = lambda c, k0, uy: _filter_chunk(setup.diagnoser, setup.params, c, k0, uy, with_cov)
+    keys = FILTER_OUTPUTS + (("cov",) if with_cov else ())
+    run = lambda c, k0, uy: filter_chunk(setup.diagnoser, setup.params, c, k0, uy, keys)
     final, out = scan_chunked(
         run, setup.init_state, N, chunk=chunk, xs=(us, ys), progress=progress, timings=timings
-    )
-    keys = ["mode_probs", "mean", "recognised", "declared", "health"] + (
-        ["cov"] if with_cov else []
     )
     return final, dict(zip(keys, out, strict=True))
 
@@ -377,13 +298,13 @@ def run_scenario(
     """Simulate a scenario's truth and diagnose it (or diagnose given measurements).
 
     Args:
-        scenario: the :class:`~uimm_jax.scenarios.Scenario`.
+        scenario: the :class:`~uimm_jax.scenario.spec.Scenario`.
         method: ``"uimm"`` or ``"imm"``; default: the scenario's.
         seed: PRNG seed of the truth noise; default: the scenario's.
         chunk: steps per compiled chunk (progress granularity and memory bound).
         progress: optional ``(stage, done, total, elapsed)`` callback.
         measurements: optional measured data to diagnose instead of simulating: an
-            ``(N, m)`` array or a :class:`~uimm_jax.measured.MeasuredData` (whose inputs,
+            ``(N, m)`` array or a :class:`~uimm_jax.scenario.measured.MeasuredData` (whose inputs,
             if any, are used); the truth fields of the summary then follow the scenario's
             events and the true states are NaN.
 
@@ -393,6 +314,42 @@ def run_scenario(
     check_seed(seed)
     check_positive_int(chunk, "chunk")
     setup = setup_scenario(scenario, method)
+    return execute_run(
+        setup,
+        filter_measurements,
+        seed=seed,
+        chunk=chunk,
+        progress=progress,
+        measurements=measurements,
+    )
+
+
+def execute_run(
+    setup: RunSetup,
+    diagnose: Callable,
+    *,
+    truth_setup: RunSetup | None = None,
+    seed: int | None = None,
+    chunk: int = DEFAULT_CHUNK,
+    progress: Callable | None = None,
+    measurements=None,
+) -> RunResult:
+    """Simulate (or read) a run's truth, diagnose it and summarise it.
+
+    Args:
+        setup: the :class:`RunSetup` of the diagnoser (and of the summary).
+        diagnose: ``diagnose(setup, y, u, *, chunk, progress, timings) -> (state,
+            outputs)``, e.g. :func:`filter_measurements`.
+        truth_setup: the setup whose truth is simulated (default ``setup``).
+        seed: PRNG seed of the truth noise; default: the scenario's.
+        chunk: steps per compiled chunk.
+        progress: optional ``(stage, done, total, elapsed)`` callback.
+        measurements: optional measured data instead of a simulated truth.
+
+    Returns:
+        A :class:`RunResult`.
+    """
+    scenario = setup.scenario
     cb = (
         (lambda stage: lambda d, t, e: progress(stage, d, t, e))
         if progress
@@ -400,15 +357,14 @@ def run_scenario(
     )
     t0 = time.perf_counter()
     if measurements is None:
-        truth = simulate_scenario(setup, seed, chunk=chunk, progress=cb("simulate"))
+        truth = simulate_scenario(truth_setup or setup, seed, chunk=chunk, progress=cb("simulate"))
     else:  # measured data: no simulation; inputs from the data when it has them
         truth = truth_for_measurements(setup, measurements, scenario_inputs)
     t_sim = time.perf_counter() - t0
-    y = truth["y"]
     t1 = time.perf_counter()
     timings: list = []
-    _, outputs = filter_measurements(
-        setup, y, truth["u"], chunk=chunk, progress=cb("filter"), timings=timings
+    _, outputs = diagnose(
+        setup, truth["y"], truth["u"], chunk=chunk, progress=cb("filter"), timings=timings
     )
     t_filter = time.perf_counter() - t1
     summary = summarize(
@@ -421,17 +377,6 @@ def run_scenario(
         chunk_timings=timings,
     )
     return RunResult(setup, truth, outputs, summary)
-
-
-def _declaration_list(declared: np.ndarray, names, dt) -> list[dict]:
-    out = []
-    prev = np.concatenate([[0], declared[:-1]])
-    for k in np.flatnonzero(declared != prev):
-        new = int(declared[k]) & ~int(prev[k])
-        for j, name in enumerate(names):
-            if new >> j & 1:
-                out.append({"fault": name, "time": float((k + 1) * dt), "step": int(k)})
-    return out
 
 
 def _rates(N: int, runtime_s: float, chunk_timings: list | None) -> dict[str, Any]:
@@ -470,20 +415,22 @@ def summarize(
     names = list(setup.table.names)
     dt = float(sc.dt)
     N = int(truth_codes.shape[0])
-    decl = _declaration_list(np.asarray(outputs["declared"]), names, dt)
-    false = []
-    for d in decl:
-        j = names.index(d["fault"])
-        d["correct"] = bool(int(truth_codes[d["step"]]) >> j & 1)
-        if not d["correct"]:
-            false.append({"fault": d["fault"], "time": d["time"]})
+    F = len(names)
+    onset = metrics.first_steps(truth_codes, F)
+    decl_step = metrics.first_steps(outputs["declared"], F)
+    false_mask = metrics.false_declared(onset, decl_step)
+    found = metrics.detected(onset, decl_step)
+    decl = metrics.declaration_list(decl_step, names, dt)
+    is_false = [bool(false_mask[names.index(d["fault"])]) for d in decl]
+    false = [
+        {"fault": d["fault"], "time": d["time"]} for d, f in zip(decl, is_false, strict=True) if f
+    ]
     delays = {}
     for ev, k_ev in zip(sc.events, setup.event_steps, strict=True):
-        first = [d for d in decl if d["fault"] == ev.fault and d["correct"]]
-        delays[ev.fault] = float((first[0]["step"] - k_ev) * dt) if first else None
-    recognised = np.asarray(outputs["recognised"])
-    health = np.asarray(outputs["health"])
-    acc = float(np.mean(recognised == truth_codes)) if N else float("nan")
+        j = names.index(ev.fault)
+        delays[ev.fault] = float((decl_step[j] - k_ev) * dt) if found[j] else None
+    correct = np.sum(np.asarray(outputs["recognised"]) == truth_codes)
+    health = metrics.health_counts(outputs["health"])
     return {
         "scenario": sc.name,
         "source": sc.source,
@@ -500,22 +447,18 @@ def summarize(
             for ev in sc.events
         ],
         "declarations": [
-            {"fault": d["fault"], "time": d["time"], "correct": d["correct"]} for d in decl
+            {"fault": d["fault"], "time": d["time"], "correct": not f}
+            for d, f in zip(decl, is_false, strict=True)
         ],
         "detection_delay_s": delays,
         "false_declarations": len(false),
         "false_declaration_list": false,
-        "mode_accuracy": acc,
+        "mode_accuracy": metrics.mode_accuracy(correct, N),
         "transition": setup.transition.tolist(),
         "initial_mode_probs": setup.initial_mode_probs.tolist(),
         "threshold": float(sc.filter.decision.threshold),
         "hold": int(sc.filter.decision.hold),
-        "health": {
-            "cov_repaired_steps": int(np.sum(health & 1 > 0)),
-            "nonfinite_caught_steps": int(np.sum(health & 2 > 0)),
-            "gated_steps": int(np.sum(health & 4 > 0)),
-            "missing_steps": int(np.sum(health & 8 > 0)),
-        },
+        "health": {f"{name}_steps": count for name, count in health.items()},
         "runtime_s": float(runtime_s),
         "simulation_runtime_s": None if sim_runtime_s is None else float(sim_runtime_s),
         **_rates(N, runtime_s, chunk_timings),

@@ -1,21 +1,15 @@
-"""Time loops and the public linear-Gaussian IMM API.
+"""The public linear-Gaussian IMM API.
 
 :func:`imm_filter` runs an IMM over a user's own bank of discrete-time linear-Gaussian
 models (:class:`LinearGaussianBank`) in one ``lax.scan``.  Its convention at each step k
 is filterpy's ``predict(u); update(z)``: mix, predict with ``inputs[k]``, update with
 ``measurements[k]``; ``transition[i, j] = P(mode j at k+1 | mode i at k)``.
-
-:func:`scan_chunked` is the driver used for long runs: it scans in chunks of a fixed size
-(one compiled function reused for every chunk, so no recompilation), which bounds the
-memory of the stacked outputs the caller keeps and lets the caller report progress.
 """
 
 from __future__ import annotations
 
 import functools
-import time
 import warnings
-from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import jax
@@ -36,7 +30,7 @@ from uimm_jax.engine.dynamics import LinearCache, MatrixBankDynamics
 from uimm_jax.engine.imm import IMMParams, IMMState, imm_step
 from uimm_jax.errors import UIMMWarning
 
-__all__ = ["IMMResult", "LinearGaussianBank", "imm_filter", "scan_chunked"]
+__all__ = ["IMMResult", "LinearGaussianBank", "imm_filter"]
 
 
 class LinearGaussianBank(NamedTuple):
@@ -261,63 +255,3 @@ def imm_filter(
         health=health,
         model_mean=model_mean,
     )
-
-
-def scan_chunked(
-    run_chunk: Callable,
-    carry,
-    num_steps: int,
-    *,
-    chunk: int,
-    xs: Any = None,
-    progress: Callable[[int, int, float], None] | None = None,
-    keep_outputs: bool = True,
-    timings: list | None = None,
-):
-    """Drive a jitted chunk function over ``num_steps`` steps.
-
-    ``run_chunk(carry, k0, xs_chunk) -> (carry, outputs)`` must be jitted; it scans steps
-    ``k0 .. k0 + len(xs_chunk) - 1`` (``xs_chunk`` is the slice of ``xs``, a pytree with a
-    leading time axis, or an ``arange`` of step indices when ``xs`` is None).  All chunks
-    but possibly the last have the same length, so at most two compilations happen per
-    shape and a second run of the same problem compiles nothing.  Per-step inputs are fed
-    as scan ``xs`` rather than indexed inside the loop (measured faster on XLA CPU), and
-    outputs are moved to the host chunk by chunk, so device memory stays bounded.
-
-    Args:
-        run_chunk: the jitted chunk function.
-        carry: initial carry.
-        num_steps: total number of steps.
-        chunk: steps per chunk.
-        xs: optional pytree of per-step inputs (leading axis ``num_steps``).
-        progress: optional callback ``(done, total, elapsed_s)`` called after each chunk.
-        keep_outputs: concatenate and return the outputs (else ``None``).
-        timings: optional list; ``(steps, seconds)`` of every chunk is appended (the first
-            chunk's time includes compilation).
-
-    Returns:
-        ``(final_carry, outputs)`` with outputs concatenated along the time axis as NumPy.
-    """
-    outs = []
-    t0 = time.perf_counter()
-    done = 0
-    while done < num_steps:
-        length = min(chunk, num_steps - done)
-        if xs is None:
-            piece = jnp.arange(done, done + length, dtype=jnp.int32)
-        else:
-            piece = jax.tree.map(lambda a, d=done, n=length: a[d : d + n], xs)
-        tc = time.perf_counter()
-        carry, out = run_chunk(carry, jnp.asarray(done, jnp.int32), piece)
-        if timings is not None:
-            jax.block_until_ready(carry)
-            timings.append((length, time.perf_counter() - tc))
-        if keep_outputs:
-            outs.append(jax.tree.map(np.asarray, out))
-        done += length
-        if progress is not None:
-            jax.block_until_ready(carry)
-            progress(done, num_steps, time.perf_counter() - t0)
-    if not outs:
-        return carry, None
-    return carry, jax.tree.map(lambda *a: np.concatenate(a, axis=0), *outs)

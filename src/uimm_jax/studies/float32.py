@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import time
 import warnings
 from collections.abc import Callable
 from typing import Any
@@ -46,6 +45,15 @@ import numpy as np
 
 from uimm_jax.errors import UIMMWarning
 from uimm_jax.plants.base import LinearPlant, NonlinearPlant
+from uimm_jax.plants.dynamics import make_dynamics
+from uimm_jax.studies.run import (
+    DEFAULT_CHUNK,
+    RunResult,
+    execute_run,
+    filter_measurements,
+    setup_scenario,
+)
+from uimm_jax.studies.truth import scenario_inputs
 
 __all__ = [
     "Scaling",
@@ -110,39 +118,24 @@ def _pow2(v: np.ndarray) -> np.ndarray:
     return np.exp2(np.round(np.log2(v)))
 
 
-def _expm(M: np.ndarray) -> np.ndarray:
-    """Matrix exponential (scaling and squaring, Taylor series): accurate enough here."""
-    norm = float(np.max(np.sum(np.abs(M), axis=1))) if M.size else 0.0
-    s = max(0, int(np.ceil(np.log2(norm))) + 1) if norm > 0.5 else 0
-    X = M / 2.0**s
-    term = np.eye(M.shape[0])
-    out = term.copy()
-    for k in range(1, 20):
-        term = term @ X / k
-        out = out + term
-    for _ in range(s):
-        out = out @ out
-    return out
-
-
 def _nominal_discrete_model(scenario):
-    """Float64 ``(Ad, Cd)`` of the nominal model, linearised at the initial mean."""
+    """Float64 ``(Ad, Cd)`` of the nominal model, linearised at the initial mean.
+
+    The engine's own discretisation of the plant at the nominal parameters: the filter's
+    ``prepare`` and the Jacobians of ``predict`` and ``observe``.
+    """
     plant = scenario.plant
     theta = plant.theta(scenario.plant_params)
     n, p = plant.state_dim, plant.input_dim
-    dt = float(scenario.dt)
     with jax.enable_x64(True):
-        th = jnp.asarray(theta, jnp.float64)
-        pr = plant.params(th)
-        x0 = jnp.asarray(scenario.filter.initial_mean, jnp.float64)
-        u0 = jnp.zeros((p,), jnp.float64)
-        if isinstance(plant, LinearPlant):
-            A, _, C, _ = (np.asarray(a, np.float64) for a in plant.matrices(pr))
-        else:
-            A = np.asarray(jax.jacfwd(lambda x: jnp.asarray(plant.f(x, u0, pr)))(x0))
-            C = np.asarray(jax.jacfwd(lambda x: jnp.asarray(plant.h(x, pr)))(x0))
-    Ad = _expm(np.asarray(A, np.float64) * dt) if plant.time == "continuous" else A
-    return Ad.reshape(n, n), C.reshape(plant.output_dim, n)
+        dyn = make_dynamics(plant, float(scenario.dt), np.asarray(theta, np.float64)[None])
+        th = jnp.asarray(theta, jnp.float64)[:, None]
+        x0 = jnp.asarray(scenario.filter.initial_mean, jnp.float64)[:, None]
+        cache = dyn.prepare(th)
+        _, A = dyn.predict(cache, x0, jnp.zeros((p, 1), jnp.float64))
+        _, C = dyn.observe(cache, x0)
+        A, C = (np.asarray(a, np.float64) for a in (A, C))
+    return A.reshape(n, n), C.reshape(plant.output_dim, n)
 
 
 def choose_scaling(scenario, *, power_of_two: bool = True) -> Scaling:
@@ -153,7 +146,7 @@ def choose_scaling(scenario, *, power_of_two: bool = True) -> Scaling:
     a state with zero variance falls back to ``sqrt(Q_ii)``, then to 1).
 
     Args:
-        scenario: the :class:`~uimm_jax.scenarios.Scenario`.
+        scenario: the :class:`~uimm_jax.scenario.spec.Scenario`.
         power_of_two: round every scale to the nearest power of two (exact scaling).
 
     Returns:
@@ -191,8 +184,8 @@ def scaled_plant(plant, scaling: Scaling):
     """A plant in scaled coordinates ``x~ = S^-1 x``, ``y~ = T^-1 y`` (cached).
 
     Args:
-        plant: a :class:`~uimm_jax.models.LinearPlant` or
-            :class:`~uimm_jax.models.NonlinearPlant`.
+        plant: a :class:`~uimm_jax.plants.base.LinearPlant` or
+            :class:`~uimm_jax.plants.base.NonlinearPlant`.
         scaling: the :class:`Scaling`.
 
     Returns:
@@ -249,7 +242,7 @@ def scale_scenario(scenario, scaling: Scaling | None = None):
     """The scenario in scaled coordinates (plant, Q, R, initial mean and covariance).
 
     Args:
-        scenario: the :class:`~uimm_jax.scenarios.Scenario`.
+        scenario: the :class:`~uimm_jax.scenario.spec.Scenario`.
         scaling: the scales (default: :func:`choose_scaling`).
 
     Returns:
@@ -284,16 +277,14 @@ def setup_float32(scenario, method: str | None = None, scaling: Scaling | None =
     """Compile the float32 diagnoser of a scenario (scaled coordinates).
 
     Args:
-        scenario: the :class:`~uimm_jax.scenarios.Scenario` (physical units).
+        scenario: the :class:`~uimm_jax.scenario.spec.Scenario` (physical units).
         method: ``"uimm"`` or ``"imm"``; default: the scenario's.
         scaling: the scales (default: :func:`choose_scaling`).
 
     Returns:
-        ``(setup, scaling)``: a float32 :class:`~uimm_jax.runner.RunSetup` of the scaled
+        ``(setup, scaling)``: a float32 :class:`~uimm_jax.studies.run.RunSetup` of the scaled
         scenario and the :class:`Scaling` used.
     """
-    from uimm_jax.runner import setup_scenario
-
     scaled, scaling = scale_scenario(scenario, scaling)
     with jax.enable_x64(False):
         setup = setup_scenario(scaled, method, dtype=jnp.float32)
@@ -328,25 +319,32 @@ def _warn_if_unresolvable(y: np.ndarray, R: np.ndarray) -> None:
 
 
 def filter_float32(
-    setup, scaling: Scaling, y, u=None, *, chunk: int | None = None, with_cov=False, progress=None
+    setup,
+    scaling: Scaling,
+    y,
+    u=None,
+    *,
+    chunk: int | None = None,
+    with_cov=False,
+    progress=None,
+    timings: list | None = None,
 ):
     """Run a float32 setup (from :func:`setup_float32`) over physical measurements.
 
     Args:
-        setup: the float32 :class:`~uimm_jax.runner.RunSetup`.
+        setup: the float32 :class:`~uimm_jax.studies.run.RunSetup`.
         scaling: its :class:`Scaling`.
         y: ``(N, m)`` measurements in physical units (NaN = missing).
         u: ``(N, p)`` inputs (default: the scenario's input signal).
         chunk: steps per compiled chunk (default: the runner's).
         with_cov: also return the combined covariance.
         progress: optional ``(done, total, elapsed)`` callback.
+        timings: optional list receiving ``(steps, seconds)`` per chunk.
 
     Returns:
-        ``(final_state, outputs)`` as :func:`uimm_jax.runner.filter_measurements`, with
+        ``(final_state, outputs)`` as :func:`uimm_jax.studies.run.filter_measurements`, with
         ``mean`` (and ``cov``) mapped back to physical units (float64 arrays).
     """
-    from uimm_jax.runner import DEFAULT_CHUNK, filter_measurements, scenario_inputs
-
     y = np.asarray(y, np.float64)
     if u is None:
         u = scenario_inputs(setup.scenario, y.shape[0])
@@ -362,6 +360,7 @@ def filter_float32(
             chunk=chunk or DEFAULT_CHUNK,
             with_cov=with_cov,
             progress=progress,
+            timings=timings,
         )
     out = dict(out)
     out["mean"] = scaling.unscale_mean(out["mean"])
@@ -379,72 +378,45 @@ def run_scenario_float32(
     progress: Callable | None = None,
     measurements: Any = None,
     scaling: Scaling | None = None,
-):
-    """:func:`uimm_jax.runner.run_scenario` with the diagnoser in float32 (scaled).
+) -> RunResult:
+    """:func:`uimm_jax.studies.run.run_scenario` with the diagnoser in float32 (scaled).
 
     The truth is simulated in float64 (the reference: requires ``jax_enable_x64``), or
     taken from ``measurements``; only the diagnoser runs in float32.  The summary has the
     extra key ``scaling`` (the state and output scales) and ``dtype = "float32"``.
 
     Args:
-        scenario: the :class:`~uimm_jax.scenarios.Scenario`.
+        scenario: the :class:`~uimm_jax.scenario.spec.Scenario`.
         method: ``"uimm"`` or ``"imm"``; default: the scenario's.
         seed: PRNG seed of the truth noise; default: the scenario's.
         chunk: steps per compiled chunk (default: the runner's).
         progress: optional ``(stage, done, total, elapsed)`` callback.
         measurements: optional measured data (array or
-            :class:`~uimm_jax.measured.MeasuredData`) instead of simulating.
+            :class:`~uimm_jax.scenario.measured.MeasuredData`) instead of simulating.
         scaling: the scales (default: :func:`choose_scaling`).
 
     Returns:
-        A :class:`~uimm_jax.runner.RunResult` whose ``setup`` is the float32 setup of the
+        A :class:`~uimm_jax.studies.run.RunResult` whose ``setup`` is the float32 setup of the
         scaled scenario; ``outputs["mean"]`` is in physical units.
     """
-    from uimm_jax.runner import (
-        DEFAULT_CHUNK,
-        RunResult,
-        scenario_inputs,
-        setup_scenario,
-        simulate_scenario,
-    )
-    from uimm_jax.runner import summarize as _summarize
-    from uimm_jax.studies.measured import truth_for_measurements
-
     if not jax.config.jax_enable_x64:
         raise RuntimeError(
             "run_scenario_float32 simulates the float64 reference truth: enable float64 "
             "first with jax.config.update('jax_enable_x64', True)"
         )
-    chunk = chunk or DEFAULT_CHUNK
-    cb = (
-        (lambda stage: lambda d, t, e: progress(stage, d, t, e))
-        if progress
-        else (lambda stage: None)
-    )
     setup32, scaling = setup_float32(scenario, method, scaling)
-    t0 = time.perf_counter()
-    if measurements is None:
-        setup64 = setup_scenario(scenario, method)
-        truth = simulate_scenario(setup64, seed, chunk=chunk, progress=cb("simulate"))
-    else:
-        truth = truth_for_measurements(setup32, measurements, scenario_inputs)
-    t_sim = time.perf_counter() - t0
-    t1 = time.perf_counter()
-    _, outputs = filter_float32(
-        setup32, scaling, truth["y"], truth["u"], chunk=chunk, progress=cb("filter")
-    )
-    t_filter = time.perf_counter() - t1
-    summary = _summarize(
+    res = execute_run(
         setup32,
-        truth["truth"],
-        outputs,
-        runtime_s=t_filter,
-        sim_runtime_s=t_sim,
-        seed=scenario.seed if seed is None else int(seed),
+        lambda setup, y, u, **kw: filter_float32(setup, scaling, y, u, **kw),
+        truth_setup=setup_scenario(scenario, method) if measurements is None else None,
+        seed=seed,
+        chunk=chunk or DEFAULT_CHUNK,
+        progress=progress,
+        measurements=measurements,
     )
-    summary["source"] = scenario.source
-    summary["scaling"] = {"state": list(scaling.state), "output": list(scaling.output)}
-    return RunResult(setup32, truth, outputs, summary)
+    res.summary["source"] = scenario.source
+    res.summary["scaling"] = {"state": list(scaling.state), "output": list(scaling.output)}
+    return res
 
 
 def float32_agreement(out64: dict, out32: dict, decl64: list, decl32: list) -> dict[str, Any]:

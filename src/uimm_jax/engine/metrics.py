@@ -1,0 +1,265 @@
+"""Diagnosis metrics: one definition of each, for single runs, sweeps, tuning and benchmarks.
+
+Everything is computed from two per-fault step arrays of the same shape ``(..., F)``:
+``onset`` (the step at which fault ``j`` enters the truth, ``-1`` if it never does) and
+``decl`` (the step at which it is declared, ``-1`` if never).  Faults accumulate in the
+truth and declarations never retract, so a declaration of ``j`` at step ``k`` is *correct*
+when ``0 <= onset[j] <= k`` (``j`` is present in the truth at ``k``) and *false* otherwise.
+Per-step code series (bit ``j`` = fault ``j``) become these arrays with
+:func:`first_steps`.
+
+On the device, :class:`RunMetrics` accumulates them in a scan carry
+(:func:`update_metrics`): the sweep keeps nothing per step.
+
+* detection: ``j`` occurs and is correctly declared (:func:`detected`); its delay is
+  ``decl - onset`` steps;
+* :func:`false_declared`: ``j`` is declared while absent from the truth;
+* confusion matrix (:func:`confusion`; rows: the fault-free period of each run, then each
+  true fault event; columns: each fault, then ``none``): for a fault event of ``j`` with
+  onset ``s``, the first fault *newly* declared in ``[s, next onset)`` (``[s, end)`` for
+  the last event) among the faults absent before ``s``; ties go to ``j`` if it is among
+  them, else to the lowest fault index; ``none`` if there is none.  For the fault-free
+  period ``[0, first onset)`` it is the first fault declared in it, or ``none``.  An event
+  is *isolated* when it lands on the diagonal (:func:`isolated`);
+* mode accuracy: the fraction of samples whose recognised fault set equals the truth;
+* health counts: samples (or runs) with each health bit (:data:`HEALTH_FLAGS`);
+* :func:`wilson_interval`: the Wilson score interval of a proportion.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from uimm_jax.engine.imm import (
+    HEALTH_COV_REPAIRED,
+    HEALTH_GATED,
+    HEALTH_MISSING,
+    HEALTH_NONFINITE,
+)
+
+__all__ = [
+    "HEALTH_FLAGS",
+    "RunMetrics",
+    "confusion",
+    "declaration_list",
+    "delay_stats",
+    "detected",
+    "false_declared",
+    "first_steps",
+    "health_counts",
+    "init_metrics",
+    "isolated",
+    "mode_accuracy",
+    "new_declarations",
+    "update_metrics",
+    "wilson_interval",
+]
+
+HEALTH_FLAGS = {
+    "cov_repaired": HEALTH_COV_REPAIRED,
+    "nonfinite_caught": HEALTH_NONFINITE,
+    "gated": HEALTH_GATED,
+    "missing": HEALTH_MISSING,
+}
+"""Name of each health bit of :mod:`uimm_jax.engine.imm` (as used in summaries)."""
+
+
+# --------------------------------------------------------------------------------------
+# On the device: accumulators of a scan
+# --------------------------------------------------------------------------------------
+
+
+class RunMetrics(NamedTuple):
+    """Per-run metrics accumulated in a scan carry (batch ``B``).
+
+    Attributes:
+        decl_step: ``(B, F)`` int32 step of the declaration of each fault (-1 if none).
+        correct: ``(B,)`` int32 samples whose recognised fault set equals the truth.
+        sq_err: ``(n, B)`` sum over steps of the squared combined-estimate error.
+        health: ``(B,)`` int32 OR of the per-step health flags.
+    """
+
+    decl_step: jax.Array
+    correct: jax.Array
+    sq_err: jax.Array
+    health: jax.Array
+
+
+def init_metrics(runs: int, num_faults: int, state_dim: int, dtype) -> RunMetrics:
+    """Empty :class:`RunMetrics` of ``runs`` runs."""
+    return RunMetrics(
+        decl_step=jnp.full((runs, num_faults), -1, jnp.int32),
+        correct=jnp.zeros((runs,), jnp.int32),
+        sq_err=jnp.zeros((state_dim, runs), dtype),
+        health=jnp.zeros((runs,), jnp.int32),
+    )
+
+
+def new_declarations(decl_step: jax.Array, before: jax.Array, after: jax.Array, k) -> jax.Array:
+    """``decl_step`` with step ``k`` recorded for the faults declared at this step.
+
+    Args:
+        decl_step: ``(..., F)`` int32 declaration steps so far.
+        before: ``(..., F)`` bool declared set before the step.
+        after: ``(..., F)`` bool declared set after it.
+        k: the step (scalar int).
+    """
+    return jnp.where(after & ~before, k, decl_step)
+
+
+def update_metrics(
+    m: RunMetrics, k, before, after, recognised, code, mean, x, health
+) -> RunMetrics:
+    """One step of the :class:`RunMetrics` accumulators.
+
+    Args:
+        m: the accumulators.
+        k: the step (scalar int32).
+        before: ``(B, F)`` declared set before the step; ``after``: after it.
+        after: see ``before``.
+        recognised: ``(B,)`` recognised fault-set code.
+        code: ``(B,)`` true fault-set code.
+        mean: ``(n, B)`` combined estimate; ``x``: the true state.
+        x: see ``mean``.
+        health: ``(B,)`` health bits of the step.
+    """
+    err = mean - x
+    return RunMetrics(
+        decl_step=new_declarations(m.decl_step, before, after, k),
+        correct=m.correct + (recognised == code).astype(jnp.int32),
+        sq_err=m.sq_err + err * err,
+        health=m.health | health,
+    )
+
+
+# --------------------------------------------------------------------------------------
+# On the host
+# --------------------------------------------------------------------------------------
+
+
+def first_steps(codes, num_faults: int) -> np.ndarray:
+    """``(..., F)`` first step at which bit ``j`` of a ``(N, ...)`` code series is set (-1)."""
+    codes = np.asarray(codes).astype(np.int64)
+    bits = (codes[..., None] >> np.arange(num_faults)) & 1 > 0  # (N, ..., F)
+    if not bits.shape[0]:
+        return np.full(bits.shape[1:], -1, np.int64)
+    first = np.argmax(bits, axis=0)
+    return np.where(bits.any(axis=0), first, -1)
+
+
+def declaration_list(decl, names, dt: float) -> list[dict]:
+    """The declarations of one run in time order (ties in fault order).
+
+    Args:
+        decl: ``(F,)`` declaration step of each fault (-1: never).
+        names: fault names.
+        dt: sample time; sample ``k`` is taken at ``(k + 1) dt``.
+
+    Returns:
+        ``[{"fault", "time", "step"}, ...]``.
+    """
+    decl = np.asarray(decl)
+    order = sorted((int(k), j) for j, k in enumerate(decl) if k >= 0)
+    return [{"fault": names[j], "time": float((k + 1) * dt), "step": k} for k, j in order]
+
+
+def detected(onset, decl) -> np.ndarray:
+    """Bool: the fault occurred and was correctly declared."""
+    onset, decl = np.asarray(onset), np.asarray(decl)
+    return (onset >= 0) & (decl >= onset)
+
+
+def false_declared(onset, decl) -> np.ndarray:
+    """Bool: the fault was declared while absent from the truth."""
+    onset, decl = np.asarray(onset), np.asarray(decl)
+    return (decl >= 0) & ((onset < 0) | (decl < onset))
+
+
+def mode_accuracy(correct_samples, samples: int) -> float:
+    """Fraction of ``samples`` whose recognised fault set was the true one."""
+    return float(np.sum(correct_samples)) / samples if samples else float("nan")
+
+
+def health_counts(health) -> dict[str, int]:
+    """How many entries (steps, or runs of OR-ed flags) carry each health bit, by name."""
+    health = np.asarray(health)
+    return {name: int(np.sum(health & bit > 0)) for name, bit in HEALTH_FLAGS.items()}
+
+
+def delay_stats(delays) -> dict[str, float | None]:
+    """Mean, median, 95th percentile (linear interpolation) and max (``None`` if empty)."""
+    d = np.asarray(delays, np.float64)
+    if not d.size:
+        return {"mean": None, "median": None, "p95": None, "max": None}
+    return {
+        "mean": float(np.mean(d)),
+        "median": float(np.median(d)),
+        "p95": float(np.percentile(d, 95)),
+        "max": float(np.max(d)),
+    }
+
+
+def confusion(onset, decl, num_steps: int) -> np.ndarray:
+    """Confusion counts ``(1 + F, F + 1)`` of a set of runs ``(R, F)`` (see the module doc)."""
+    onset, decl = np.asarray(onset), np.asarray(decl)
+    R, F = onset.shape
+    mat = np.zeros((1 + F, F + 1), np.int64)
+    for r in range(R):
+        on, de = onset[r], decl[r]
+        starts = sorted({int(s) for s in on if s >= 0})
+        first = starts[0] if starts else num_steps
+        # Fault-free period [0, first).
+        cand = [(int(de[f]), f) for f in range(F) if 0 <= de[f] < first]
+        mat[0, min(cand)[1] if cand else F] += 1
+        for j in range(F):
+            s = int(on[j])
+            if s < 0:
+                continue
+            later = [t for t in starts if t > s]
+            end = later[0] if later else num_steps
+            cand = [
+                (int(de[f]), f)
+                for f in range(F)
+                if not (0 <= on[f] < s) and s <= de[f] < end  # absent before s, declared in
+            ]
+            if not cand:
+                col = F
+            else:
+                t0 = min(c[0] for c in cand)
+                tied = [f for t, f in cand if t == t0]
+                col = j if j in tied else min(tied)
+            mat[1 + j, col] += 1
+    return mat
+
+
+def isolated(onset, decl, num_steps: int) -> np.ndarray:
+    """Bool per run (``(..., F)`` -> ``(...)``): every fault event lands on the diagonal."""
+    onset, decl = np.asarray(onset), np.asarray(decl)
+    lead = onset.shape[:-1]
+    on = onset.reshape(-1, onset.shape[-1])
+    de = decl.reshape(on.shape)
+    out = np.ones(on.shape[0], bool)
+    for r in range(on.shape[0]):
+        conf = confusion(on[r][None], de[r][None], num_steps)
+        out[r] = np.trace(conf[1:, :-1]) == conf[1:].sum()
+    return out.reshape(lead)
+
+
+def wilson_interval(k: int, n: int, z: float = 1.959963984540054) -> tuple[float, float] | None:
+    """Wilson score interval of a binomial proportion ``k / n`` (95 % by default).
+
+    Returns ``None`` when ``n == 0``.
+    """
+    if n <= 0:
+        return None
+    p = k / n
+    z2 = z * z
+    den = 1.0 + z2 / n
+    centre = (p + z2 / (2 * n)) / den
+    half = z / den * math.sqrt(p * (1 - p) / n + z2 / (4 * n * n))
+    return (max(0.0, centre - half), min(1.0, centre + half))

@@ -1,0 +1,351 @@
+"""The results of a sweep: per-run arrays, per-cell metrics, ``results.json/csv``, figures.
+
+:class:`SweepResult` holds what :func:`uimm_jax.studies.sweep.run_sweep` measured, as
+arrays per cell and run; :func:`cell_summary` turns one cell into its metrics (the
+definitions live in :mod:`uimm_jax.engine.metrics`) and :func:`write_sweep_outputs`
+writes them.
+
+**Metrics** (per cell, :func:`cell_summary`; a declaration of fault ``j`` at step ``k`` is
+*correct* when ``j`` is present in the truth at ``k``, as in
+:func:`uimm_jax.studies.run.summarize`):
+
+* ``detection_probability[j]``: fraction of the runs with an event of ``j`` in which ``j``
+  is correctly declared before the end of the run, with a Wilson 95 % interval;
+  ``missed_detections[j]`` is the complement as a count;
+* delays (``mean/median/p95/max_delay_s[j]``): declaration step minus onset step, times
+  ``dt``, over the detected runs (``p95`` with linear interpolation);
+* ``false_declarations``: total number of incorrect declarations in the cell;
+  ``false_alarm_rate_per_hour``: declarations made while the truth is fault-free, per hour
+  of fault-free operation (the whole of a fault-free run, the time before the first onset
+  otherwise);
+* confusion matrix (rows: the fault-free period of each run, then each true fault event;
+  columns: each fault, then ``none``): for a fault event of ``j`` with onset ``s``, the
+  first fault *newly* declared in ``[s, next onset)`` (``[s, end)`` for the last event)
+  among the faults absent before ``s``; ties go to ``j`` if it is among them, else to
+  the lowest fault index; ``none`` if there is none.  For the fault-free period
+  ``[0, first onset)`` it is the first fault declared in it, or ``none`` (a true negative).
+  ``isolation_accuracy`` is the diagonal's share of the fault events (Wilson interval);
+* ``mode_accuracy``: fraction of all samples of the cell whose recognised fault set equals
+  the true one;
+* ``state_rmse``: root mean square of the combined estimate's error, per state.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from uimm_jax.engine import metrics
+from uimm_jax.scenario.sweep import SweepSpec
+
+__all__ = ["Cell", "SweepResult", "cell_summary", "write_sweep_outputs"]
+
+_RUN_HEALTH = ("cov_repaired", "nonfinite_caught", "gated")  # simulated runs miss nothing
+
+
+class Cell(NamedTuple):
+    """One cell of a sweep.
+
+    Attributes:
+        index: position in :attr:`SweepResult.cells`.
+        method: ``"uimm"`` or ``"imm"``.
+        case: the case name (``"fault-free"`` for the fault-free case).
+        magnitude: the magnitude scale (0 for the fault-free case).
+        noise_scale: the truth noise scale.
+    """
+
+    index: int
+    method: str
+    case: str
+    magnitude: float
+    noise_scale: float
+
+
+@dataclasses.dataclass
+class SweepResult:
+    """Everything a sweep produced, as arrays per cell (``C`` cells, ``R`` runs).
+
+    Attributes:
+        spec: the :class:`SweepSpec`.
+        cells: the :class:`Cell` list.
+        faults: fault names (bank order).
+        states: state names.
+        dt: sample time, s.
+        num_steps: samples per run.
+        scenario: the scenario's name.
+        source: the scenario's source.
+        onset_step: ``(C, R, F)`` onset step of each fault (-1: no event).
+        decl_step: ``(C, R, F)`` declaration step of each fault (-1: never declared).
+        correct_samples: ``(C, R)`` samples with the correct recognised fault set.
+        sq_err: ``(C, R, n)`` summed squared state errors.
+        health: ``(C, R)`` OR of the health flags.
+        summaries: one dict per cell (:func:`cell_summary`).
+        runtime_s: wall time of the simulations (compilation included).
+        devices: number of devices the run axis was sharded over.
+        batch: runs per compiled batch actually used.
+        chunk: time steps per compiled chunk actually used.
+    """
+
+    spec: SweepSpec
+    cells: list[Cell]
+    faults: tuple[str, ...]
+    states: tuple[str, ...]
+    dt: float
+    num_steps: int
+    scenario: str
+    source: str
+    onset_step: np.ndarray
+    decl_step: np.ndarray
+    correct_samples: np.ndarray
+    sq_err: np.ndarray
+    health: np.ndarray
+    summaries: list[dict] = dataclasses.field(default_factory=list)
+    runtime_s: float = 0.0
+    devices: int = 1
+    batch: int = 0
+    chunk: int = 0
+
+    @property
+    def run_steps(self) -> int:
+        """Total number of simulated run-steps."""
+        return len(self.cells) * self.spec.runs * self.num_steps
+
+    def detected(self) -> np.ndarray:
+        """``(C, R, F)`` bool: the fault occurred and was correctly declared."""
+        return metrics.detected(self.onset_step, self.decl_step)
+
+    def isolated(self) -> np.ndarray:
+        """``(C, R)`` bool: every fault event of the run isolated (confusion diagonal)."""
+        return metrics.isolated(self.onset_step, self.decl_step, self.num_steps)
+
+    def false_declared(self) -> np.ndarray:
+        """``(C, R, F)`` bool: the fault was declared while absent from the truth."""
+        return metrics.false_declared(self.onset_step, self.decl_step)
+
+    def to_json(self) -> dict:
+        """The ``results.json`` document."""
+        s = self.spec
+        return {
+            "scenario": self.scenario,
+            "source": self.source,
+            "faults": list(self.faults),
+            "states": list(self.states),
+            "dt": self.dt,
+            "num_steps": self.num_steps,
+            "duration_s": self.num_steps * self.dt,
+            "seed": s.seed,
+            "runs": s.runs,
+            "methods": list(s.methods),
+            "magnitudes": list(s.magnitudes),
+            "noise_scales": list(s.noise_scales),
+            "cases": [
+                {
+                    "name": c.name,
+                    "events": [
+                        {"fault": e.fault, "time": list(e.time), "magnitude": e.magnitude}
+                        for e in c.events
+                    ],
+                }
+                for c in s.cases
+            ],
+            "fault_free": s.fault_free,
+            "batch": self.batch,
+            "chunk": self.chunk,
+            "devices": self.devices,
+            "run_steps": self.run_steps,
+            "runtime_s": self.runtime_s,
+            "run_steps_per_s": self.run_steps / self.runtime_s if self.runtime_s > 0 else None,
+            "cells": self.summaries,
+        }
+
+
+def cell_summary(result: SweepResult, index: int) -> dict:
+    """The metrics of one cell (a ``results.json`` cell; see the module doc)."""
+    cell = result.cells[index]
+    dt = result.dt
+    N = result.num_steps
+    on = result.onset_step[index]
+    de = result.decl_step[index]
+    R = on.shape[0]
+    faults = result.faults
+    det = metrics.detected(on, de)
+    false = metrics.false_declared(on, de)
+    dp, ci, ndet, nev, missed = {}, {}, {}, {}, {}
+    mean_d, med_d, p95_d, max_d = {}, {}, {}, {}
+    for j, f in enumerate(faults):
+        ev = on[:, j] >= 0
+        n = int(ev.sum())
+        if n == 0:
+            continue
+        k = int(det[:, j].sum())
+        nev[f], ndet[f], missed[f] = n, k, n - k
+        dp[f] = k / n
+        ci[f] = list(metrics.wilson_interval(k, n))
+        d = metrics.delay_stats((de[det[:, j], j] - on[det[:, j], j]).astype(np.float64) * dt)
+        mean_d[f], med_d[f], p95_d[f], max_d[f] = d["mean"], d["median"], d["p95"], d["max"]
+    first_onset = np.where(on >= 0, on, N).min(axis=1)  # (R,)
+    ff_steps = int(first_onset.sum())
+    ff_hours = ff_steps * dt / 3600.0
+    ff_false = int(np.sum((de >= 0) & (de < first_onset[:, None])))
+    conf = metrics.confusion(on, de, N)
+    n_events = int(conf[1:].sum())
+    iso_k = int(np.trace(conf[1:, :-1]))
+    runs_false = int(np.any(false, axis=1).sum())
+    sq = result.sq_err[index]  # (R, n)
+    rmse = np.sqrt(sq.sum(axis=0) / (R * N))
+    health = metrics.health_counts(result.health[index])
+    return {
+        "method": cell.method,
+        "case": cell.case,
+        "magnitude": cell.magnitude,
+        "noise_scale": cell.noise_scale,
+        "runs": R,
+        "num_steps": N,
+        "events": nev,
+        "detections": ndet,
+        "detection_probability": dp,
+        "detection_probability_ci": ci,
+        "missed_detections": missed,
+        "mean_delay_s": mean_d,
+        "median_delay_s": med_d,
+        "p95_delay_s": p95_d,
+        "max_delay_s": max_d,
+        "false_declarations": int(false.sum()),
+        "runs_with_false_declaration": runs_false,
+        "false_declaration_run_probability_ci": list(metrics.wilson_interval(runs_false, R)),
+        "false_declarations_fault_free": ff_false,
+        "fault_free_hours": ff_hours,
+        "false_alarm_rate_per_hour": ff_false / ff_hours if ff_hours > 0 else None,
+        "isolation_accuracy": iso_k / n_events if n_events else None,
+        "isolation_accuracy_ci": (
+            list(metrics.wilson_interval(iso_k, n_events)) if n_events else None
+        ),
+        "confusion": {
+            "rows": ["fault-free"] + list(faults),
+            "columns": list(faults) + ["none"],
+            "matrix": conf.tolist(),
+        },
+        "mode_accuracy": metrics.mode_accuracy(result.correct_samples[index], R * N),
+        "mode_accuracy_min_run": metrics.mode_accuracy(result.correct_samples[index].min(), N),
+        "state_rmse": {s: float(v) for s, v in zip(result.states, rmse, strict=True)},
+        "health": {f"runs_{name}": health[name] for name in _RUN_HEALTH},
+    }
+
+
+def _csv_rows(result: SweepResult) -> tuple[list[str], list[list]]:
+    faults = result.faults
+    head = ["method", "case", "magnitude", "noise_scale", "runs"]
+    for f in faults:
+        head += [
+            f"{f}:events",
+            f"{f}:detection_probability",
+            f"{f}:detection_ci_lo",
+            f"{f}:detection_ci_hi",
+            f"{f}:missed",
+            f"{f}:mean_delay_s",
+            f"{f}:median_delay_s",
+            f"{f}:p95_delay_s",
+            f"{f}:max_delay_s",
+        ]
+    head += [
+        "false_declarations",
+        "runs_with_false_declaration",
+        "false_declarations_fault_free",
+        "fault_free_hours",
+        "false_alarm_rate_per_hour",
+        "isolation_accuracy",
+        "mode_accuracy",
+    ] + [f"rmse:{s}" for s in result.states]
+    rows = []
+    for s in result.summaries:
+        row = [s["method"], s["case"], s["magnitude"], s["noise_scale"], s["runs"]]
+        for f in faults:
+            ci = s["detection_probability_ci"].get(f) or [None, None]
+            row += [
+                s["events"].get(f, 0),
+                s["detection_probability"].get(f),
+                ci[0],
+                ci[1],
+                s["missed_detections"].get(f),
+                s["mean_delay_s"].get(f),
+                s["median_delay_s"].get(f),
+                s["p95_delay_s"].get(f),
+                s["max_delay_s"].get(f),
+            ]
+        row += [
+            s["false_declarations"],
+            s["runs_with_false_declaration"],
+            s["false_declarations_fault_free"],
+            s["fault_free_hours"],
+            s["false_alarm_rate_per_hour"],
+            s["isolation_accuracy"],
+            s["mode_accuracy"],
+        ] + [s["state_rmse"][st] for st in result.states]
+        rows.append(["" if v is None else v for v in row])
+    return head, rows
+
+
+def _safe(name: str) -> str:
+    return "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in name)
+
+
+def write_sweep_outputs(
+    result: SweepResult, out: str | Path, *, figures: bool = True, extra: Mapping | None = None
+) -> list[Path]:
+    """Write ``results.json``, ``results.csv`` and the figures into ``out``.
+
+    Figures: ``sweep_<case>.png`` (detection probability with Wilson intervals and median
+    delay against magnitude, every method on the same axes) for each fault case, and
+    ``confusion_<method>.png`` (the confusion counts summed over the method's cells).
+
+    Args:
+        result: the :class:`SweepResult`.
+        out: output directory (created).
+        figures: also write the figures.
+        extra: extra top-level entries for ``results.json``.
+
+    Returns:
+        The written paths.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    doc = result.to_json()
+    if extra:
+        doc.update(extra)
+    written = [out / "results.json", out / "results.csv"]
+    written[0].write_text(json.dumps(doc, indent=2) + "\n")
+    head, rows = _csv_rows(result)
+    with written[1].open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(head)
+        w.writerows(rows)
+    if not figures:
+        return written
+    from uimm_jax.studies import plots, plots_sweep
+
+    for case in result.spec.cases:
+        cells = [s for s in result.summaries if s["case"] == case.name]
+        fig = plots_sweep.plot_sweep(
+            cells,
+            title=f"{result.scenario}: case {case.name!r}, {result.spec.runs} runs per cell "
+            "(95 % Wilson intervals)",
+        )
+        written.append(plots.save_figure(fig, out / f"sweep_{_safe(case.name)}.png"))
+    for method in result.spec.methods:
+        ss = [s for s in result.summaries if s["method"] == method]
+        mat = np.sum([s["confusion"]["matrix"] for s in ss], axis=0)
+        conf = ss[0]["confusion"]
+        fig = plots_sweep.plot_confusion(
+            mat,
+            conf["rows"],
+            conf["columns"],
+            title=f"{method.upper()}: first new declaration per event ({len(ss)} cells)",
+        )
+        written.append(plots.save_figure(fig, out / f"confusion_{method}.png"))
+    return written

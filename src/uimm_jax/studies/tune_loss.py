@@ -1,0 +1,517 @@
+"""Training batches and the tuning loss: the exact hard diagnoser plus a smooth surrogate.
+
+:func:`make_batch` builds a batch of simulated runs (the truth plans of
+:func:`uimm_jax.studies.truth.build_truth_plan`, the noise keys of
+:func:`uimm_jax.engine.truth.run_keys`); :func:`loss_and_parts` scans the truth sample
+(:func:`uimm_jax.engine.scan.truth_sample`), the diagnoser step and the loss
+accumulators over it (see :mod:`uimm_jax.studies.tune` for the losses and the
+checkpointed time loop).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from uimm_jax.engine.metrics import new_declarations
+from uimm_jax.engine.scan import scan_chunked, truth_sample
+from uimm_jax.engine.truth import NEVER, TruthPlan, run_keys
+from uimm_jax.engine.uimm import DiagParams, DiagState
+from uimm_jax.studies.run import setup_scenario
+from uimm_jax.studies.truth import build_truth_plan
+from uimm_jax.studies.tune_params import (
+    Constrained,
+    LossWeights,
+    TunableParams,
+    TuneConfig,
+    constrain,
+    diag_params,
+)
+
+__all__ = [
+    "LossParts",
+    "Observed",
+    "Problem",
+    "RunCase",
+    "TrainingBatch",
+    "loss_and_parts",
+    "make_batch",
+    "make_loss_fn",
+    "precompute_truth",
+    "scenario_case",
+    "trace_surrogate",
+]
+
+_H_MAX = 1.0 - 1e-12  # hazards are clipped below 1 so that log1p(-h) stays finite
+
+
+class Observed(NamedTuple):
+    """Precomputed truth of a batch (time-major).
+
+    Attributes:
+        u: ``(N, p, B)`` inputs.
+        y: ``(N, m, B)`` measurements.
+        code: ``(N, B)`` int32 true fault-set codes.
+    """
+
+    u: jax.Array
+    y: jax.Array
+    code: jax.Array
+
+
+class RunCase(NamedTuple):
+    """The truth of one kind of run: fault events ``(fault, time_s, magnitude)``.
+
+    Attributes:
+        name: label.
+        events: tuple of ``(fault, time, magnitude)``; empty for a fault-free run.
+    """
+
+    name: str
+    events: tuple[tuple[str, float, float], ...]
+
+
+class TrainingBatch(NamedTuple):
+    """A batch of simulated runs (pytree; the runs axis is ``B``).
+
+    Attributes:
+        plan: batched :class:`~uimm_jax.engine.truth.TruthPlan` (phases last).
+        keys: ``(B, 2)`` raw uint32 noise keys (common random numbers).
+        onset: ``(B, F)`` int32 onset step of each fault (``INT32_MAX``: no event).
+        init: initial :class:`~uimm_jax.engine.uimm.DiagState` of the batch.
+        base: the scenario's :class:`~uimm_jax.engine.uimm.DiagParams` (Q, R, starting values).
+        signal: the input signal.
+        data: optional precomputed truth (:func:`precompute_truth`); when present the
+            loss reads it instead of simulating the truth inside the loop.
+    """
+
+    plan: TruthPlan
+    keys: jax.Array
+    onset: jax.Array
+    init: DiagState
+    base: DiagParams
+    signal: Any
+    data: Observed | None = None
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Problem:
+    """Static description of a tuning problem (hashed by identity).
+
+    Attributes:
+        diagnoser: the engine's :class:`~uimm_jax.engine.uimm.Diagnoser`.
+        num_steps: samples per run.
+        dt: sample time, s.
+        input_dim: ``p``.
+        case_names: name of each run's case.
+        seeds: the seed the batch keys were split from.
+        scenario: the scenario the batch was built from.
+    """
+
+    diagnoser: Any
+    num_steps: int
+    dt: float
+    input_dim: int
+    case_names: tuple[str, ...]
+    seeds: int
+    scenario: Any
+
+    @property
+    def num_models(self) -> int:
+        """``M``."""
+        return self.diagnoser.num_models
+
+
+def scenario_case(scenario, time_scale: float = 1.0) -> RunCase:
+    """A scenario's own events as a :class:`RunCase` (times multiplied by ``time_scale``)."""
+    return RunCase(
+        scenario.name,
+        tuple((e.fault, float(e.time) * time_scale, float(e.magnitude)) for e in scenario.events),
+    )
+
+
+def make_batch(
+    scenario,
+    cases: Sequence[RunCase],
+    runs_per_case: int | Sequence[int],
+    seed: int,
+    *,
+    duration: float | None = None,
+    dtype=None,
+) -> tuple[Problem, TrainingBatch]:
+    """Build a batch of runs of ``scenario`` (its plant, noise, faults and filter).
+
+    Args:
+        scenario: the :class:`~uimm_jax.scenario.spec.Scenario` (UIMM or IMM).
+        cases: the truths to simulate (e.g. the scenario's own events and a fault-free run).
+        runs_per_case: runs of each case (an int for all, or one per case).
+        seed: root seed of the noise keys (:func:`uimm_jax.engine.truth.run_keys`).
+        duration: run length in s (default: the scenario's).
+        dtype: float dtype (default: JAX's default float).
+
+    Returns:
+        ``(problem, batch)``.
+    """
+    dtype = dtype or jnp.asarray(0.0).dtype
+    if scenario.filter.method != "uimm":
+        raise ValueError(
+            f"tuning supports method 'uimm' (the scenario's is {scenario.filter.method!r})"
+        )
+    setup = setup_scenario(scenario, dtype=dtype)
+    diag = setup.diagnoser
+    table = setup.table
+    names = list(table.names)
+    F = len(names)
+    dt = float(scenario.dt)
+    dur = float(scenario.duration if duration is None else duration)
+    N = int(round(dur / dt))
+    if isinstance(runs_per_case, int):
+        runs_per_case = [runs_per_case] * len(cases)
+    K = max(2, 1 + max((len(c.events) for c in cases), default=0))
+    onsets, mags, labels = [], [], []
+    for case, nr in zip(cases, runs_per_case, strict=True):
+        on = np.full(F, -1, np.int64)
+        mag = np.ones(F)
+        for fault, t, a in case.events:
+            if fault not in names:
+                raise ValueError(f"case {case.name!r}: unknown fault {fault!r}")
+            j = names.index(fault)
+            k = int(round(t / dt))
+            if not 0 <= k < N:
+                raise ValueError(f"case {case.name!r}: event at {t} s is outside the run")
+            if on[j] >= 0:
+                raise ValueError(f"case {case.name!r}: fault {fault!r} occurs twice")
+            on[j], mag[j] = k, a
+        onsets += [on] * nr
+        mags += [mag] * nr
+        labels += [case.name] * nr
+    B = len(labels)
+    if B == 0:
+        raise ValueError("make_batch: no runs")
+    onsets = np.array(onsets)
+    plan = build_truth_plan(
+        scenario,
+        diag.dyn,
+        table,
+        onsets,
+        np.array(mags),
+        dtype=dtype,
+        num_phases=K,
+        hint="the cases' magnitudes and the fault values",
+    )
+    flt = scenario.filter
+    init = diag.init(
+        np.asarray(flt.initial_mean),
+        np.asarray(flt.initial_cov),
+        setup.initial_mode_probs,
+        (B,),
+        dtype,
+    )
+    batch = TrainingBatch(
+        plan=plan,
+        keys=jnp.asarray(run_keys(seed, B)[0]),
+        onset=jnp.asarray(np.where(onsets >= 0, onsets, NEVER).astype(np.int32)),
+        init=init,
+        base=setup.params,
+        signal=setup.signal,
+    )
+    problem = Problem(diag, N, dt, scenario.plant.input_dim, tuple(labels), int(seed), scenario)
+    return problem, batch
+
+
+class LossParts(NamedTuple):
+    """Loss terms averaged over the runs, and hard outcomes of the forward pass.
+
+    Attributes:
+        total: the weighted loss.
+        ce: mean cross-entropy per sample (nats).
+        delay: mean over runs of the summed surrogate delays (s).
+        false: mean over runs of the cumulative false-declaration hazard.
+        decl_step: ``(B, F)`` int32 hard declaration step of each fault (-1: never).
+    """
+
+    total: jax.Array
+    ce: jax.Array
+    delay: jax.Array
+    false: jax.Array
+    decl_step: jax.Array
+
+
+class _Acc(NamedTuple):
+    ce_sum: jax.Array  # (B,)
+    ce_count: jax.Array  # (B,)
+    run: jax.Array  # (B, F) soft run length
+    log_nofalse: jax.Array  # (B, F) sum of log(1 - h) while absent
+    log_surv: jax.Array  # (B, F) log survival since onset (undeclared)
+    delay: jax.Array  # (B, F) sum of survivals (steps)
+    decl_step: jax.Array  # (B, F) int32
+
+
+class _Carry(NamedTuple):
+    x: jax.Array
+    diag: DiagState
+    acc: _Acc
+
+
+def _lse_excluding(log_mu: jax.Array, j: int) -> jax.Array:
+    """``logsumexp`` of ``log_mu[..., i]`` over ``i != j`` (finite when model 0 is)."""
+    M = log_mu.shape[-1]
+    others = [log_mu[..., i] for i in range(M) if i != j]
+    mx = others[0]
+    for o in others[1:]:
+        mx = jnp.maximum(mx, o)
+    mx = jax.lax.stop_gradient(jnp.where(jnp.isfinite(mx), mx, 0.0))
+    return jnp.log(sum(jnp.exp(o - mx) for o in others)) + mx
+
+
+def _truth(problem: Problem, batch: TrainingBatch, x: jax.Array, k: jax.Array):
+    """Input and truth step ``k`` of every run: ``(u (p, B), x_next, y, code)``."""
+    u, x, y, code = truth_sample(
+        problem.diagnoser.dyn,
+        problem.dt,
+        problem.input_dim,
+        batch.plan,
+        batch.signal,
+        batch.keys,
+        x,
+        k,
+    )
+    return jnp.full((problem.input_dim,) + x.shape[1:], u, x.dtype), x, y, code
+
+
+def _step(problem: Problem, config: TuneConfig, c: Constrained, params, carry, k, u, y, code):
+    """One step of the hard diagnoser, the decision surrogate and the loss accumulators."""
+    diag = problem.diagnoser
+    F = diag.num_faults
+    prev = carry.diag
+    st, info = diag.step(prev, params, u, y, with_cov=False)
+    log_mu = info.step.log_mode_probs  # (B, M) posterior before the decision
+    dtype = log_mu.dtype
+    acc = carry.acc
+    declared0 = prev.declared  # (B, F): the bank this step used
+    declared1 = st.declared
+    present = ((code[:, None] >> jnp.arange(F)) & 1).astype(bool)  # (B, F)
+    # --- cross-entropy against the bank slot of the true fault set --------------------
+    extra = present & ~declared0
+    n_extra = jnp.sum(extra, axis=-1)
+    valid = jnp.all(~declared0 | present, axis=-1) & (n_extra <= 1)
+    true_idx = jnp.where(n_extra == 0, 0, 1 + jnp.argmax(extra, axis=-1))
+    onehot = true_idx[:, None] == jnp.arange(log_mu.shape[-1])
+    lm_true = jnp.sum(jnp.where(onehot, log_mu, 0.0), axis=-1)
+    lm_true = jnp.where(valid, lm_true, 0.0)
+    ce_sum = acc.ce_sum - lm_true
+    ce_count = acc.ce_count + valid.astype(dtype)
+    # --- decision surrogate (UIMM: model j + 1 is "D + fault j") ----------------------
+    if not config.couple:
+        log_mu = jax.lax.stop_gradient(log_mu)
+    logit_thr = jnp.log(c.threshold) - jnp.log1p(-c.threshold)
+    qs = []
+    for j in range(F):
+        act = ~declared0[:, j]
+        lm_j = log_mu[:, j + 1]
+        ok = act & jnp.isfinite(lm_j)
+        lm_j = jnp.where(ok, lm_j, 0.0)  # double where: no inf in the differentiated path
+        d = (lm_j - _lse_excluding(log_mu, j + 1) - logit_thr) / config.temperature
+        d = jnp.where(ok, d, 0.0)
+        qs.append(jnp.where(ok, jax.nn.sigmoid(d), 0.0))
+    q = jnp.stack(qs, axis=-1)  # (B, F)
+    gate = jax.nn.sigmoid((jnp.log1p(acc.run) - c.log_hold_gate) / config.hold_temperature)
+    h = jnp.minimum(q * gate, _H_MAX)
+    log1m_h = jnp.log1p(-h)
+    run = q * (acc.run + 1.0)
+    log_nofalse = acc.log_nofalse + jnp.where(present, 0.0, log1m_h)
+    window = present & ~declared1
+    log_surv = acc.log_surv + jnp.where(window, log1m_h, 0.0)
+    delay = acc.delay + jnp.where(window, jnp.exp(log_surv), 0.0)
+    decl_step = new_declarations(acc.decl_step, declared0, declared1, k.astype(jnp.int32))
+    acc = _Acc(ce_sum, ce_count, run, log_nofalse, log_surv, delay, decl_step)
+    return _Carry(carry.x, st, acc), (log_mu, h, declared1, code)
+
+
+def _initial_carry(problem: Problem, batch: TrainingBatch) -> _Carry:
+    B = batch.keys.shape[0]
+    F = problem.diagnoser.num_faults
+    n = batch.init.imm.mean.shape[0]
+    dtype = batch.init.imm.mean.dtype
+    z = jnp.zeros((B, F), dtype)
+    acc = _Acc(
+        jnp.zeros((B,), dtype),
+        jnp.zeros((B,), dtype),
+        z,
+        z,
+        z,
+        z,
+        jnp.full((B, F), -1, jnp.int32),
+    )
+    return _Carry(jnp.zeros((n, B), dtype), batch.init, acc)
+
+
+def _segment_length(N: int, config: TuneConfig) -> int:
+    if config.segment is not None:
+        return int(min(config.segment, N))
+    return max(1, int(math.ceil(math.sqrt(N))))
+
+
+def _run(problem: Problem, config: TuneConfig, c: Constrained, params, batch, carry):
+    """Scan the fused step over all samples (nested, checkpointed scan)."""
+    N = problem.num_steps
+    L = _segment_length(N, config)
+    S, rem = divmod(N, L)
+    data = batch.data
+
+    def body(cc, xs):
+        if data is None:
+            k = xs
+            u, x, y, code = _truth(problem, batch, cc.x, k)
+            cc = cc._replace(x=x)
+        else:
+            k, u, y, code = xs
+        return _step(problem, config, c, params, cc, k, u, y, code)[0], None
+
+    def segment(cr, xs):
+        cr, _ = jax.lax.scan(body, cr, xs)
+        return cr
+
+    seg = jax.checkpoint(segment) if config.checkpoint else segment
+    ks = jnp.arange(N, dtype=jnp.int32)
+    xs = ks if data is None else (ks, data.u, data.y, data.code)
+    if S == 1:
+        carry = seg(carry, jax.tree.map(lambda a: a[:L], xs))
+    else:
+        head = jax.tree.map(lambda a: a[: S * L].reshape((S, L) + a.shape[1:]), xs)
+        carry, _ = jax.lax.scan(lambda cr, xx: (seg(cr, xx), None), carry, head)
+    if rem:
+        carry = seg(carry, jax.tree.map(lambda a: a[S * L :], xs))
+    return carry
+
+
+def precompute_truth(problem: Problem, batch: TrainingBatch, *, chunk: int = 50_000):
+    """Simulate the batch's truth once and store it in ``batch.data``.
+
+    Training then reads the measurements instead of simulating them inside the loss (the
+    truth does not depend on the tuned parameters): faster iterations and a smaller
+    compiled gradient, at ``N * B * (p + m + 1)`` stored numbers.
+
+    Returns:
+        The batch with ``data`` set.
+    """
+    n = batch.init.imm.mean.shape[0]
+    B = batch.keys.shape[0]
+    dtype = batch.init.imm.mean.dtype
+    fn = _truth_scan(problem)
+    _, (u, y, code) = scan_chunked(
+        lambda x, k0, ks: fn(batch, x, ks),
+        jnp.zeros((n, B), dtype),
+        problem.num_steps,
+        chunk=chunk,
+    )
+    return batch._replace(data=Observed(jnp.asarray(u), jnp.asarray(y), jnp.asarray(code)))
+
+
+def _truth_scan(problem: Problem):
+    @jax.jit
+    def fn(batch, x, ks):
+        def body(xc, k):
+            u, xn, y, code = _truth(problem, batch, xc, k)
+            return xn, (u, y, code)
+
+        return jax.lax.scan(body, x, ks)
+
+    return fn
+
+
+def loss_and_parts(
+    raw: TunableParams,
+    problem: Problem,
+    batch: TrainingBatch,
+    config: TuneConfig,
+    weights: jax.Array | LossWeights | None = None,
+) -> tuple[jax.Array, LossParts]:
+    """The tuning loss of ``raw`` on a batch of runs (not jitted; see :func:`make_loss_fn`).
+
+    Args:
+        raw: the :class:`TunableParams`.
+        problem: the :class:`Problem`.
+        batch: the :class:`TrainingBatch`.
+        config: the :class:`TuneConfig`.
+        weights: ``(3,)`` weights ``(ce, delay, false)`` (a traced argument, so that a
+            schedule does not recompile); default ``config.weights``.
+
+    Returns:
+        ``(loss, parts)`` with ``parts`` a :class:`LossParts`.
+    """
+    M = problem.num_models
+    c = constrain(raw, M, config)
+    params = diag_params(c, batch.base)
+    carry = _run(problem, config, c, params, batch, _initial_carry(problem, batch))
+    a = carry.acc
+    dtype = a.ce_sum.dtype
+    ce = jnp.mean(a.ce_sum / jnp.maximum(a.ce_count, 1.0))
+    delay = jnp.mean(jnp.sum(a.delay, axis=-1)) * problem.dt
+    false = jnp.mean(jnp.sum(-a.log_nofalse, axis=-1))
+    w = jnp.asarray(config.weights if weights is None else weights, dtype)
+    total = (w[0] * ce + w[1] * delay + w[2] * false).astype(dtype)
+    return total, LossParts(total, ce, delay, false, a.decl_step)
+
+
+def trace_surrogate(raw: TunableParams, problem: Problem, batch: TrainingBatch, config):
+    """Per-step trace of the forward pass (for inspection and plots; memory ``O(N)``).
+
+    Returns:
+        dict of NumPy arrays: ``mode_probs`` ``(N, B, M)``, ``hazard`` ``(N, B, F)`` (the
+        soft declaration hazard ``h``), ``declared`` ``(N, B, F)`` (hard, after the step)
+        and ``truth`` ``(N, B)`` fault-set codes.
+    """
+    M = problem.num_models
+    data = batch.data if batch.data is not None else precompute_truth(problem, batch).data
+
+    @jax.jit
+    def run(raw, batch, data):
+        c = constrain(raw, M, config)
+        params = diag_params(c, batch.base)
+
+        def body(cc, xs):
+            k, u, y, code = xs
+            return _step(problem, config, c, params, cc, k, u, y, code)
+
+        ks = jnp.arange(problem.num_steps, dtype=jnp.int32)
+        return jax.lax.scan(body, _initial_carry(problem, batch), (ks, *data))[1]
+
+    log_mu, h, declared, code = jax.tree.map(np.asarray, run(raw, batch, data))
+    return {"mode_probs": np.exp(log_mu), "hazard": h, "declared": declared, "truth": code}
+
+
+@functools.lru_cache(maxsize=16)
+def make_loss_fn(problem: Problem, config: TuneConfig) -> tuple[Callable, Callable]:
+    """Jitted ``loss(raw, batch, weights=None) -> (loss, parts)`` and its value and gradient.
+
+    Cached per ``(problem, config)``: calling it again (e.g. from :func:`fit`) reuses the
+    compiled functions; ``weights`` is traced (default ``config.weights``).
+
+    Returns:
+        ``(loss_fn, value_and_grad_fn)``; the gradient is with respect to ``raw``.
+    """
+
+    def f(raw, batch, weights):
+        return loss_and_parts(raw, problem, batch, config, weights)
+
+    f_jit = jax.jit(f)
+    vg_jit = jax.jit(jax.value_and_grad(f, has_aux=True))
+
+    def _w(weights):
+        return jnp.asarray(config.weights if weights is None else weights, jnp.float64)
+
+    def loss_fn(raw, batch, weights=None):
+        return f_jit(raw, batch, _w(weights))
+
+    def value_and_grad_fn(raw, batch, weights=None):
+        return vg_jit(raw, batch, _w(weights))
+
+    return loss_fn, value_and_grad_fn
