@@ -42,8 +42,8 @@ __all__ = [
     "truth_step",
 ]
 
-INPUT_KINDS = {"sine": 0, "square": 1, "step": 2, "constant": 3}
-"""Integer code of each input signal kind."""
+INPUT_KINDS = ("sine", "square", "step", "constant")
+"""Input signal kinds; a kind's integer code is its index."""
 
 NEVER = np.iinfo(np.int32).max
 """Event step of a padding phase: never reached."""
@@ -55,7 +55,7 @@ class InputSignal(NamedTuple):
     """A scalar input signal ``u(t)`` (applied to every input channel).
 
     Attributes:
-        kind: int code, see :data:`INPUT_KINDS` (sine, square, step, constant).
+        kind: int code, the index in :data:`INPUT_KINDS` (sine, square, step, constant).
         amplitude: amplitude (units of the input).
         frequency: Hz (sine, square).
         offset: constant added to the signal.
@@ -77,7 +77,7 @@ class InputSignal(NamedTuple):
         """
         dtype = dtype or jnp.asarray(0.0).dtype
         return cls(
-            jnp.asarray(INPUT_KINDS[spec.kind], jnp.int32),
+            jnp.asarray(INPUT_KINDS.index(spec.kind), jnp.int32),
             jnp.asarray(spec.amplitude, dtype),
             jnp.asarray(spec.frequency, dtype),
             jnp.asarray(spec.offset, dtype),

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from uimm_jax._checks import ROW_SUM_TOL
+from uimm_jax.engine.truth import INPUT_KINDS
 from uimm_jax.plants.base import Plant
 
 __all__ = [
@@ -37,9 +38,6 @@ __all__ = [
     "Scenario",
     "nonpositive_param",
 ]
-
-INPUT_KINDS = ("sine", "square", "step", "constant")
-"""Input signal shapes understood by :class:`InputSpec`."""
 
 METHODS = ("uimm", "imm")
 """Filter-bank methods: the updated IMM (F + 1 models) or the combinatorial IMM (2**F)."""
