@@ -336,7 +336,7 @@ def filter_float32(
         scaling: its :class:`Scaling`.
         y: ``(N, m)`` measurements in physical units (NaN = missing).
         u: ``(N, p)`` inputs (default: the scenario's input signal).
-        chunk: steps per compiled chunk (default: the runner's).
+        chunk: steps per compiled chunk (default: :data:`uimm_jax.studies.run.DEFAULT_CHUNK`).
         with_cov: also return the combined covariance.
         progress: optional ``(done, total, elapsed)`` callback.
         timings: optional list receiving ``(steps, seconds)`` per chunk.
@@ -389,7 +389,7 @@ def run_scenario_float32(
         scenario: the :class:`~uimm_jax.scenario.spec.Scenario`.
         method: ``"uimm"`` or ``"imm"``; default: the scenario's.
         seed: PRNG seed of the truth noise; default: the scenario's.
-        chunk: steps per compiled chunk (default: the runner's).
+        chunk: steps per compiled chunk (default: :data:`uimm_jax.studies.run.DEFAULT_CHUNK`).
         progress: optional ``(stage, done, total, elapsed)`` callback.
         measurements: optional measured data (array or
             :class:`~uimm_jax.scenario.measured.MeasuredData`) instead of simulating.

@@ -5,7 +5,14 @@
 * :func:`simulate_scenario` runs the truth (one ``lax.scan``, chunked).
 * :func:`filter_measurements` runs the diagnoser over measurements (one ``lax.scan``,
   chunked) -- simulated ones or a user's own data.
-* :func:`run_scenario` does both and returns a :class:`RunResult` with a summary dict.
+* :func:`run_scenario` does both and returns a :class:`RunResult` with a summary dict
+  (:func:`summarize`, with the definitions of :mod:`uimm_jax.engine.metrics`);
+  :func:`execute_run` is that flow for any diagnose function (the float32 option uses it).
+
+The truth plan comes from :func:`uimm_jax.studies.truth.build_truth_plan`, the time loops
+from :mod:`uimm_jax.engine.scan` (:func:`~uimm_jax.engine.scan.truth_scan`,
+:func:`~uimm_jax.engine.scan.filter_chunk`, driven by
+:func:`~uimm_jax.engine.scan.scan_chunked`).
 
 Time convention: sample k is taken at ``t_k = (k + 1) dt``; the input ``u_k = u(k dt)`` is
 held over ``[k dt, (k+1) dt)``; an event at time ``T`` acts from step ``round(T / dt)``.

@@ -80,13 +80,14 @@ is simulated inside the loop from ``fold_in(key, k)`` (nothing per step is store
 
 **Evaluation** always uses the exact hard rule: :func:`hard_metrics` reads the hard
 declarations of the training forward pass, and :func:`evaluate` / :func:`before_after`
-(used by the CLI, :mod:`uimm_jax.tune_cli`) run :func:`uimm_jax.studies.sweep.run_sweep` on
+(used by the CLI, :mod:`uimm_jax.cli.tune`) run :func:`uimm_jax.studies.sweep.run_sweep` on
 held-out seeds.
 
-**Modules.**  The parameters and their constraints live in :mod:`uimm_jax.studies.tune_params`,
-the training batches and the loss in :mod:`uimm_jax.studies.tune_loss`, the hard-rule
-evaluation and the tuned scenario in :mod:`uimm_jax.studies.tune_eval`; this module holds
-the optax loop (:func:`fit`) and re-exports the public names of all three.
+**Modules.**  The parameters and their constraints live in
+:mod:`uimm_jax.studies.tune_params`, the training batches and the loss in
+:mod:`uimm_jax.studies.tune_loss`, the hard-rule evaluation and the tuned scenario in
+:mod:`uimm_jax.studies.tune_eval`; this module holds the optax loop (:func:`fit`) and
+re-exports the public names of all three.
 """
 
 from __future__ import annotations
