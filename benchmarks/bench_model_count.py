@@ -141,7 +141,7 @@ def simulate_and_diagnose(
             setup, onset, np.ones(onset.shape), np.ones(B), keys, K, jnp.float64
         )
         m = sweep.run_batch(setup, plan, k, carry, sc.num_steps, chunk)
-        out[method] = (m.decl_step[:R], m.correct[:R])
+        out[method] = (m.decl_step.T[:R], m.correct[:R])
     return onset[:R], out
 
 

@@ -876,12 +876,12 @@ def test_combinatorial_bank_has_two_to_the_f_models(F):
     updated = build_diagnoser("uimm", None, table)
     assert combinatorial.num_models == 2**F == len(combinatorial.model_labels())
     assert updated.num_models == F + 1 == len(updated.model_labels())
-    sets = bank.combinatorial_sets(F)
-    assert sets.shape == (2**F, F)
-    assert len({tuple(s) for s in sets.tolist()}) == 2**F  # every subset exactly once
+    sets = bank.combinatorial_sets(F)  # (F, 2^F): fault axis first, like every set
+    assert sets.shape == (F, 2**F)
+    assert len({tuple(s) for s in sets.T.tolist()}) == 2**F  # every subset exactly once
     codes = np.asarray(bank.set_codes(jnp.asarray(sets)))
     assert len(set(codes.tolist())) == 2**F
-    np.testing.assert_array_equal(codes, sets @ (1 << np.arange(F)))  # bit j = fault j
+    np.testing.assert_array_equal(codes, (1 << np.arange(F)) @ sets)  # bit j = fault j
 
 
 def test_bank_parameters_are_the_masked_updates_of_each_fault_set():
@@ -889,15 +889,15 @@ def test_bank_parameters_are_the_masked_updates_of_each_fault_set():
     table, faults = library_table(F)
     sets = bank.combinatorial_sets(F)
     thetas = np.asarray(bank.thetas_for_sets(table, jnp.asarray(sets)))
-    for s, fault_set in enumerate(sets):
+    for s, fault_set in enumerate(sets.T):
         changed = {
             k: v for f, on in zip(faults, fault_set, strict=True) if on for k, v in f.values.items()
         }
         np.testing.assert_array_equal(thetas[:, s], HYDRAULIC_ACTUATOR.theta(changed))
     updated = build_diagnoser("uimm", None, table)
     D = np.arange(F) % 2 == 0  # faults 0, 2, 4 declared
-    expected = D[None, :] | np.vstack([np.zeros(F, bool), np.eye(F, dtype=bool)])
-    np.testing.assert_array_equal(np.asarray(updated.model_sets(jnp.asarray(D))), expected)
+    expected = D[None, :] | np.vstack([np.zeros(F, bool), np.eye(F, dtype=bool)])  # (M, F)
+    np.testing.assert_array_equal(np.asarray(updated.model_sets(jnp.asarray(D))), expected.T)
 
 
 # ---------------------------------------------------------------------------

@@ -103,10 +103,10 @@ def test_model_counts(num_faults):
     assert uimm.num_models == num_faults + 1
     assert imm.num_models == 2**num_faults
     none = np.zeros(num_faults, bool)
-    sets = np.asarray(imm.model_sets(none))
-    assert sets.shape == (2**num_faults, num_faults)
-    assert len({tuple(s) for s in sets}) == 2**num_faults  # every subset once
-    assert np.asarray(uimm.model_sets(none)).shape == (num_faults + 1, num_faults)
+    sets = np.asarray(imm.model_sets(none))  # (F, M): fault axis first
+    assert sets.shape == (num_faults, 2**num_faults)
+    assert len({tuple(s) for s in sets.T}) == 2**num_faults  # every subset once
+    assert np.asarray(uimm.model_sets(none)).shape == (num_faults, num_faults + 1)
 
 
 def test_setup_builds_the_ten_fault_uimm_bank():

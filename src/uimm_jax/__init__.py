@@ -3,13 +3,20 @@
 After Sun, Wang and Lin, "Multi-Fault Diagnosis Approach Based on Updated Interacting
 Multiple Model for Aviation Hydraulic Actuator", Information 2020, 11, 410.
 
-Importing the package does no work and changes no JAX configuration.  float64 is the
+Importing the package changes no JAX configuration (``jax.config``).  float64 is the
 reference precision: enable it with ``jax.config.update("jax_enable_x64", True)`` before
-building arrays.  For speed on the CPU, call
-:func:`uimm_jax.xla_flags.apply_recommended_xla_flags` before JAX starts (the CLI does).
+building arrays.  For speed on the CPU the import appends two XLA CPU flags to
+``XLA_FLAGS`` if no JAX backend has started yet (:mod:`uimm_jax.xla_flags`; opt out with
+``UIMM_JAX_NO_XLA_FLAGS=1``).
 """
 
 from importlib.metadata import PackageNotFoundError, version
+
+from uimm_jax.xla_flags import apply_recommended_xla_flags
+
+apply_recommended_xla_flags()  # before anything below imports JAX; no-op once it started
+
+# ruff: noqa: E402
 
 from uimm_jax.engine.bank import FaultTable, fault_table
 from uimm_jax.engine.imm import IMMParams, IMMState, StepInfo, imm_step

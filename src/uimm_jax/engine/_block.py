@@ -8,8 +8,9 @@ inside the hoisted time loop, the unrolled form to mostly scalar code (measured 
 instructions for the same flops, ``benchmarks/bench_vs_reference.py``).  No dot or
 custom call appears, so XLA CPU can hoist a whole ``lax.scan`` into one kernel.
 
-Batch axes align from the right: a ``(r, c)`` operand broadcasts over any batch.  A
-constant NumPy identity is recognised at trace time (``C = I`` costs nothing).
+Batch axes align from the left (models, then runs: :func:`align`): a ``(r, c)`` operand
+broadcasts over any batch, an ``(r, c, M)`` bank over any runs.  A constant NumPy
+identity is recognised at trace time (``C = I`` costs nothing).
 
 The Cholesky factorisation floors its pivots and reports where it had to, so nothing
 here divides by zero or takes the square root of a negative number.
@@ -33,6 +34,7 @@ __all__ = [
     "is_identity",
     "mm",
     "mmt",
+    "mirror_lower",
     "mv",
     "sym",
 ]
@@ -42,12 +44,17 @@ PIVOT_REL_EPS = 16.0
 
 
 def align(a: Any, lead: int, batch_ndim: int) -> Any:
-    """Insert singleton batch axes after the ``lead`` matrix axes up to ``batch_ndim``."""
+    """Append singleton axes until ``a`` has ``batch_ndim`` batch axes after ``lead``.
+
+    The first ``lead`` axes are matrix axes.  Batch axes align from the left -- models
+    first, then runs -- so an operand without run axes (a model bank shared by every run,
+    a noise covariance) broadcasts over the runs.
+    """
     a = jnp.asarray(a)
     have = a.ndim - lead
     if have >= batch_ndim:
         return a
-    return jnp.reshape(a, a.shape[:lead] + (1,) * (batch_ndim - have) + a.shape[lead:])
+    return jnp.reshape(a, a.shape + (1,) * (batch_ndim - have))
 
 
 def is_identity(a: Any) -> bool:
@@ -104,6 +111,16 @@ def diagonal(a: Any) -> Any:
 def sym(a: Any) -> Any:
     """``(a + a') / 2``."""
     return 0.5 * (a + jnp.swapaxes(a, 0, 1))
+
+
+def mirror_lower(a: Any) -> Any:
+    """The symmetric matrix whose lower triangle is ``a``'s (static slices, no arithmetic).
+
+    Cheaper than :func:`sym` in the time loop (measured 5-8% of a step at 64 runs: no
+    transposed copy, no add): used where ``a`` is symmetric up to rounding.
+    """
+    n = a.shape[0]
+    return jnp.stack([jnp.stack([a[max(i, j), min(i, j)] for j in range(n)]) for i in range(n)])
 
 
 def inv_cholesky(s: Any, floor: float) -> tuple[Any, Any, Any]:

@@ -98,42 +98,43 @@ def fault_table(
 
 
 def uimm_sets(declared: jax.Array) -> jax.Array:
-    """UIMM bank fault sets ``[D, D+f1, ..., D+fF]``: ``(*runs, F)`` -> ``(*runs, F+1, F)``."""
-    F = declared.shape[-1]
-    eye = jnp.concatenate([jnp.zeros((1, F), bool), jnp.eye(F, dtype=bool)], axis=0)
-    return declared[..., None, :] | eye
+    """UIMM bank fault sets ``[D, D+f1, ..., D+fF]``: ``(F, *runs)`` -> ``(F, F+1, *runs)``."""
+    F = declared.shape[0]
+    extra = np.concatenate([np.zeros((F, 1), bool), np.eye(F, dtype=bool)], axis=1)
+    return declared[:, None] | extra.reshape((F, F + 1) + (1,) * (declared.ndim - 1))
 
 
 def combinatorial_sets(num_faults: int) -> np.ndarray:
-    """All ``2^F`` fault subsets, model ``s`` holding fault ``j`` iff bit ``j`` of ``s`` is set."""
-    s = np.arange(2**num_faults)[:, None]
-    return ((s >> np.arange(num_faults)[None, :]) & 1).astype(bool)
+    """All ``2^F`` fault subsets as ``(F, 2^F)``.
+
+    Model ``s`` holds fault ``j`` iff bit ``j`` of ``s`` is set.
+    """
+    s = np.arange(2**num_faults)[None, :]
+    return ((s >> np.arange(num_faults)[:, None]) & 1).astype(bool)
 
 
 def set_codes(sets: jax.Array) -> jax.Array:
-    """Bitmask code of fault sets (bit j = fault j): ``(..., F)`` bool -> ``(...)`` int32."""
-    F = sets.shape[-1]
-    w = jnp.asarray(1 << np.arange(F), jnp.int32)
-    return jnp.sum(jnp.where(sets, w, 0), axis=-1).astype(jnp.int32)
+    """Bitmask code of fault sets (bit j = fault j): ``(F, ...)`` bool -> ``(...)`` int32."""
+    w = (1 << np.arange(sets.shape[0], dtype=np.int32)).reshape((-1,) + (1,) * (sets.ndim - 1))
+    return jnp.sum(jnp.where(sets, w, 0), axis=0, dtype=jnp.int32)
 
 
 def thetas_for_sets(table: FaultTable, sets: jax.Array, dtype=None) -> jax.Array:
-    """Parameter vectors of fault sets in batch-minor layout.
+    """Parameter vectors of fault sets: the masked update of the UIMM (design.md section 3).
 
     Args:
         table: the fault table.
-        sets: ``(*batch, F)`` boolean fault sets.
+        sets: ``(F, *batch)`` boolean fault sets.
         dtype: output dtype (default: the default float type).
 
     Returns:
-        ``(P, *batch)`` parameters: ``jnp.where(mask, fault_value, nominal)``.
+        ``(P, *batch)`` parameters: ``where(mask, fault_value, nominal)`` per fault in the set.
     """
     dtype = dtype or jnp.asarray(0.0).dtype
-    mask = jnp.asarray(table.mask)  # (F, P)
-    values = jnp.asarray(table.values, dtype)
-    nominal = jnp.asarray(table.nominal, dtype)
-    touch = sets[..., :, None] & mask  # (*batch, F, P)
-    any_touch = jnp.any(touch, axis=-2)
-    val = jnp.sum(jnp.where(touch, values, 0.0), axis=-2)
-    theta = jnp.where(any_touch, val, nominal)  # (*batch, P)
-    return jnp.moveaxis(theta, -1, 0)
+    tail = (1,) * (sets.ndim - 1)
+    mask = np.asarray(table.mask).reshape(table.mask.shape + tail)  # (F, P, 1...)
+    values = jnp.asarray(table.values, dtype).reshape(table.values.shape + tail)
+    nominal = jnp.asarray(table.nominal, dtype).reshape(table.nominal.shape + tail)
+    touch = sets[:, None] & mask  # (F, P, *batch)
+    val = jnp.sum(jnp.where(touch, values, 0.0), axis=0)
+    return jnp.where(jnp.any(touch, axis=0), val, nominal)

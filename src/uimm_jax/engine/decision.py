@@ -26,8 +26,8 @@ class Decision(NamedTuple):
 
     Attributes:
         candidate: ``(*runs,)`` int32, the most probable model ``c``.
-        candidate_set: ``(*runs, F)`` bool, its fault set (the recognised system mode).
-        declared: ``(*runs, F)`` bool, the declared set after this step.
+        candidate_set: ``(F, *runs)`` bool, its fault set (the recognised system mode).
+        declared: ``(F, *runs)`` bool, the declared set after this step.
         declared_now: ``(*runs,)`` bool, a declaration happened at this step.
         run_len: ``(*runs,)`` int32, the run counter after this step.
     """
@@ -51,10 +51,10 @@ def decide(
     """Apply eq. (29) with persistence.
 
     Args:
-        log_mu: ``(*runs, M)`` posterior log mode probabilities.
-        candidate_set: ``f(candidate (*runs,)) -> (*runs, F)`` bool, the fault set of a
+        log_mu: ``(M, *runs)`` posterior log mode probabilities.
+        candidate_set: ``f(candidate (*runs,)) -> (F, *runs)`` bool, the fault set of a
             model (diagnoser specific).
-        declared: ``(*runs, F)`` bool, the declared set before this step.
+        declared: ``(F, *runs)`` bool, the declared set before this step.
         run_model: ``(*runs,)`` int32, the model whose run counter is active.
         run_len: ``(*runs,)`` int32, its length.
         threshold: decision threshold ``mu_f`` on the mode probability.
@@ -63,14 +63,14 @@ def decide(
     Returns:
         A :class:`Decision`.
     """
-    cand = jnp.argmax(log_mu, axis=-1).astype(jnp.int32)
+    cand = jnp.argmax(log_mu, axis=0).astype(jnp.int32)
     cand_set = candidate_set(cand)
-    top = jnp.max(log_mu, axis=-1)
-    qualifies = jnp.any(cand_set & ~declared, axis=-1) & (
+    top = jnp.max(log_mu, axis=0)
+    qualifies = jnp.any(cand_set & ~declared, axis=0) & (
         top >= jnp.log(jnp.asarray(threshold, log_mu.dtype))
     )
     run_len = jnp.where(qualifies, jnp.where(cand == run_model, run_len + 1, 1), 0)
     now = qualifies & (run_len >= hold)
-    new_declared = jnp.where(now[..., None], cand_set | declared, declared)
+    new_declared = jnp.where(now, cand_set | declared, declared)
     run_len = jnp.where(now, 0, run_len).astype(jnp.int32)
     return Decision(cand, cand_set, new_declared, now, run_len)

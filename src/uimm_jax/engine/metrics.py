@@ -78,7 +78,8 @@ class RunMetrics(NamedTuple):
     """Per-run metrics accumulated in a scan carry (batch ``B``).
 
     Attributes:
-        decl_step: ``(B, F)`` int32 step of the declaration of each fault (-1 if none).
+        decl_step: ``(F, B)`` int32 step of the declaration of each fault (-1 if none),
+            fault axis first like the engine's declared sets.
         correct: ``(B,)`` int32 samples whose recognised fault set equals the truth.
         sq_err: ``(n, B)`` sum over steps of the squared combined-estimate error.
         health: ``(B,)`` int32 OR of the per-step health flags.
@@ -93,7 +94,7 @@ class RunMetrics(NamedTuple):
 def init_metrics(runs: int, num_faults: int, state_dim: int, dtype) -> RunMetrics:
     """Empty :class:`RunMetrics` of ``runs`` runs."""
     return RunMetrics(
-        decl_step=jnp.full((runs, num_faults), -1, jnp.int32),
+        decl_step=jnp.full((num_faults, runs), -1, jnp.int32),
         correct=jnp.zeros((runs,), jnp.int32),
         sq_err=jnp.zeros((state_dim, runs), dtype),
         health=jnp.zeros((runs,), jnp.int32),
@@ -104,9 +105,9 @@ def new_declarations(decl_step: jax.Array, before: jax.Array, after: jax.Array, 
     """``decl_step`` with step ``k`` recorded for the faults declared at this step.
 
     Args:
-        decl_step: ``(..., F)`` int32 declaration steps so far.
-        before: ``(..., F)`` bool declared set before the step.
-        after: ``(..., F)`` bool declared set after it.
+        decl_step: int32 declaration steps so far, shaped like ``before``.
+        before: bool declared set before the step (``(F, ...)`` in the engine).
+        after: bool declared set after it.
         k: the step (scalar int).
     """
     return jnp.where(after & ~before, k, decl_step)
@@ -120,7 +121,7 @@ def update_metrics(
     Args:
         m: the accumulators.
         k: the step (scalar int32).
-        before: ``(B, F)`` declared set before the step; ``after``: after it.
+        before: ``(F, B)`` declared set before the step; ``after``: after it.
         after: see ``before``.
         recognised: ``(B,)`` recognised fault-set code.
         code: ``(B,)`` true fault-set code.

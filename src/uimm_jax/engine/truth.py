@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from uimm_jax.engine import _wide as wd
+from uimm_jax.engine import _block as bk
 
 __all__ = [
     "INPUT_KINDS",
@@ -341,7 +341,7 @@ def truth_step(
     )
     z = jnp.moveaxis(z, 0, -1).reshape((n + m,) + (runs if key.ndim > 1 else ()))
     z = jnp.broadcast_to(z, (n + m,) + runs)
-    x_next = xn[..., 0] + wd.mv(plan.Gq, z[:n])
-    y = yp[..., 0] + wd.mv(plan.Gr, z[n:])
+    x_next = xn[..., 0] + bk.mv(plan.Gq, z[:n])
+    y = yp[..., 0] + bk.mv(plan.Gr, z[n:])
     code = jnp.sum(jnp.where(onehot, plan.true_codes, 0), axis=-1)
     return x_next, y, code

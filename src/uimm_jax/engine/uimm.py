@@ -81,7 +81,7 @@ class DiagState(NamedTuple):
     Attributes:
         imm: the bank's :class:`~uimm_jax.engine.imm.IMMState`.
         cache: the dynamics cache of the current bank (re-built on declarations).
-        declared: ``(*runs, F)`` bool, the declared fault set ``D`` (monotone).
+        declared: ``(F, *runs)`` bool, the declared fault set ``D`` (monotone).
         run_model: ``(*runs,)`` int32, the model whose run counter is active.
         run_len: ``(*runs,)`` int32, how many consecutive samples it has qualified.
     """
@@ -140,7 +140,7 @@ class Diagnoser(abc.ABC):
 
     @abc.abstractmethod
     def model_sets(self, declared: jax.Array) -> jax.Array:
-        """Fault sets of the bank's models, ``(*runs, M, F)``."""
+        """Fault sets of the bank's models, ``(F, M, *runs)``."""
 
     @abc.abstractmethod
     def model_labels(self) -> list[str]:
@@ -148,11 +148,11 @@ class Diagnoser(abc.ABC):
 
     @abc.abstractmethod
     def _active(self, declared: jax.Array) -> jax.Array | None:
-        """``(*runs, M)`` models that may carry probability, or ``None`` for all."""
+        """``(M, *runs)`` models that may carry probability, or ``None`` for all."""
 
     @abc.abstractmethod
     def _candidate_set(self, cand: jax.Array, declared: jax.Array) -> jax.Array:
-        """Fault set ``(*runs, F)`` of model ``cand`` ``(*runs,)``."""
+        """Fault set ``(F, *runs)`` of model ``cand`` ``(*runs,)``."""
 
     def _after_decision(self, imm_state, cache, cand, declare_now, new_declared):
         """What a declaration does to the bank (nothing by default)."""
@@ -160,7 +160,7 @@ class Diagnoser(abc.ABC):
         return imm_state, cache
 
     def prepare(self, declared: jax.Array, dtype) -> Any:
-        """Dynamics cache of the bank for the declared set ``(*runs, F)``."""
+        """Dynamics cache of the bank for the declared set ``(F, *runs)``."""
         return _jit_prepare(self, declared, jnp.dtype(dtype))
 
     def _prepare(self, declared: jax.Array, dtype) -> Any:
@@ -177,16 +177,15 @@ class Diagnoser(abc.ABC):
             dtype: float dtype (default: JAX's default float).
         """
         dtype = dtype or jnp.asarray(0.0).dtype
-        shape = runs + (self.num_models,)
+        shape = (self.num_models,) + tuple(runs)
         mean0 = jnp.asarray(mean0, dtype)
         cov0 = jnp.asarray(cov0, dtype)
         mean = jnp.broadcast_to(mean0[(...,) + (None,) * len(shape)], mean0.shape + shape)
         cov = jnp.broadcast_to(cov0[(...,) + (None,) * len(shape)], cov0.shape + shape)
         mp = jnp.asarray(mode_probs0, dtype)
-        log_mu = jnp.broadcast_to(
-            jnp.where(mp > 0, jnp.log(jnp.where(mp > 0, mp, 1.0)), -jnp.inf), shape
-        )
-        declared = jnp.zeros(runs + (self.num_faults,), bool)
+        log_mp = jnp.where(mp > 0, jnp.log(jnp.where(mp > 0, mp, 1.0)), -jnp.inf)
+        log_mu = jnp.broadcast_to(log_mp[(...,) + (None,) * len(runs)], shape)
+        declared = jnp.zeros((self.num_faults,) + tuple(runs), bool)
         return DiagState(
             imm=IMMState(mean, cov, log_mu),
             cache=self.prepare(declared, dtype),
@@ -263,7 +262,7 @@ class UIMMDiagnoser(Diagnoser):
         return self.num_faults + 1
 
     def model_sets(self, declared: jax.Array) -> jax.Array:
-        """Fault sets of the bank's models, ``(*runs, F + 1, F)``."""
+        """Fault sets of the bank's models, ``(F, F + 1, *runs)``."""
         return uimm_sets(declared)
 
     def model_labels(self) -> list[str]:
@@ -272,10 +271,11 @@ class UIMMDiagnoser(Diagnoser):
 
     def _active(self, declared):
         # A declared fault's hypothesis slot equals model 0 and carries no probability.
-        return jnp.concatenate([jnp.ones(declared.shape[:-1] + (1,), bool), ~declared], -1)
+        return jnp.concatenate([jnp.ones((1,) + declared.shape[1:], bool), ~declared], 0)
 
     def _candidate_set(self, cand, declared):
-        return declared | (cand[..., None] == jnp.arange(1, self.num_models))
+        models = np.arange(1, self.num_models).reshape((-1,) + (1,) * cand.ndim)
+        return declared | (cand == models)
 
     def _after_decision(self, imm_state, cache, cand, declare_now, new_declared):
         """UIMM hand-over and masked re-parameterisation on declaration (module doc).
@@ -283,21 +283,21 @@ class UIMMDiagnoser(Diagnoser):
         Everything happens inside one ``lax.cond`` taken only on steps where some run
         declares, so the other steps pay nothing for it.
         """
-        dn = declare_now[..., None]  # (*runs, 1)
+        dn = declare_now  # (*runs,): broadcasts over the leading axes of every leaf
         dtype = imm_state.mean.dtype
 
         def handover(operand):
             st, c = operand
-            onehot = cand[..., None] == jnp.arange(self.num_models)
+            models = np.arange(self.num_models).reshape((-1,) + (1,) * cand.ndim)
+            onehot = cand == models  # (M, *runs)
             oh = onehot.astype(dtype)
-            win_mean = jnp.sum(st.mean * oh, axis=-1, keepdims=True)
-            win_cov = jnp.sum(st.cov * oh, axis=-1, keepdims=True)
+            win_mean = jnp.sum(st.mean * oh, axis=1, keepdims=True)
+            win_cov = jnp.sum(st.cov * oh, axis=2, keepdims=True)
             mean = jnp.where(dn, win_mean, st.mean)
             cov = jnp.where(dn, win_cov, st.cov)
             lm = st.log_mode_probs
-            top = jnp.max(lm, axis=-1, keepdims=True)
-            slot0 = jnp.arange(lm.shape[-1]) == 0
-            moved = jnp.where(slot0, top, jnp.where(onehot, -jnp.inf, lm))
+            top = jnp.max(lm, axis=0, keepdims=True)
+            moved = jnp.where(models == 0, top, jnp.where(onehot, -jnp.inf, lm))
             moved, _ = log_normalize(moved)
             lm = jnp.where(dn, moved, lm)
             fresh = self._prepare(new_declared, dtype)
@@ -320,23 +320,27 @@ class IMMDiagnoser(Diagnoser):
         return 2**self.num_faults
 
     def model_sets(self, declared: jax.Array) -> jax.Array:
-        """Fault sets of the bank's models, ``(*runs, 2^F, F)`` (bit j of s = fault j)."""
-        sets = jnp.asarray(combinatorial_sets(self.num_faults))
-        return jnp.broadcast_to(sets, declared.shape[:-1] + sets.shape)
+        """Fault sets of the bank's models, ``(F, 2^F)``, the same for every run.
+
+        Bit ``j`` of model ``s`` is fault ``j``.
+        """
+        del declared
+        return jnp.asarray(combinatorial_sets(self.num_faults))
 
     def model_labels(self) -> list[str]:
         """One label per fault subset."""
         names = self.table.names
         return [
             " + ".join(n for n, on in zip(names, s, strict=True) if on) or "fault-free"
-            for s in combinatorial_sets(self.num_faults)
+            for s in combinatorial_sets(self.num_faults).T
         ]
 
     def _active(self, declared):
         return None
 
     def _candidate_set(self, cand, declared):
-        return ((cand[..., None] >> jnp.arange(self.num_faults)) & 1).astype(bool)
+        bits = np.arange(self.num_faults).reshape((-1,) + (1,) * cand.ndim)
+        return ((cand >> bits) & 1).astype(bool)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 2))

@@ -73,12 +73,15 @@ CHUNK_RUN_STEPS = 2_000_000
 A chunk keeps the truth's states, measurements and codes of its steps, about 52 bytes per
 run-step (float64, 3 states, 3 outputs): ~100 MB with the default."""
 
-LANES = 8
+LANES = 16
 """Each device's share of a batch is padded to a multiple of this many runs.
 
-XLA CPU compiles the batch-minor kernel to SIMD code for batches that are multiples of 8
-runs and to differently rounded code for some small or odd batches (e.g. 4, 9 or 13 runs);
-padding keeps the numbers bit-identical whatever the batch size and the device count."""
+The run axis is the engine's innermost axis: XLA CPU compiles the loop over it to SIMD
+code (4 doubles a vector, 4 vectors an iteration on AVX2) with a differently rounded scalar
+remainder, so a run's numbers would depend on its position in a batch that is not a
+multiple of 16 (8 was enough while models were the innermost axis; measured: the 4-device
+sweep of the tests differs from the 1-device one in the last bits with 8).  Padding keeps
+the numbers bit-identical whatever the batch size and the device count."""
 
 
 def _cells(spec: SweepSpec) -> list[Cell]:
@@ -112,22 +115,11 @@ def _onset_steps(case: CaseSpec, draw_keys: np.ndarray, dt: float, num_steps: in
 
 
 def _broadcast_state(state, B: int):
-    """A single-run :class:`~uimm_jax.engine.uimm.DiagState` repeated over ``B`` runs."""
+    """A single-run :class:`~uimm_jax.engine.uimm.DiagState` repeated over ``B`` runs.
 
-    def model_last(a):  # (..., M) -> (..., B, M)
-        a = jnp.expand_dims(a, -2)
-        return jnp.broadcast_to(a, a.shape[:-2] + (B,) + a.shape[-1:])
-
-    def run_last(a):  # (...) -> (..., B)
-        return jnp.broadcast_to(a[..., None], a.shape + (B,))
-
-    return type(state)(
-        imm=jax.tree.map(model_last, state.imm),
-        cache=jax.tree.map(model_last, state.cache),
-        declared=model_last(state.declared),
-        run_model=run_last(state.run_model),
-        run_len=run_last(state.run_len),
-    )
+    Every leaf gains the run axis last (the engine's layout: small axes, models, runs).
+    """
+    return jax.tree.map(lambda a: jnp.broadcast_to(a[..., None], a.shape + (B,)), state)
 
 
 def batch_inputs(
@@ -180,27 +172,15 @@ def _run_spec(ndim: int, trailing: int):
 def _specs(carry: SimCarry, plan: TruthPlan, keys):
     """PartitionSpecs that split the run axis of every batched leaf.
 
-    The run axis is the last axis of per-run leaves (``(..., runs)``) and the one before
-    the last of bank and phase leaves (``(..., runs, models)``, ``(..., runs, phases)``).
+    The run axis is the last axis of the carry's leaves (the engine's layout: small axes,
+    models, runs) and the one before the last of the truth plan's phase leaves
+    (``(..., runs, phases)``) and of the keys.
     """
 
     def t(tree, trailing):
         return jax.tree.map(lambda a: _run_spec(a.ndim, trailing), tree)
 
-    d = carry.diag
-    diag_spec = type(d)(
-        imm=t(d.imm, 1),
-        cache=t(d.cache, 1),
-        declared=t(d.declared, 1),
-        run_model=t(d.run_model, 0),
-        run_len=t(d.run_len, 0),
-    )
-    m = carry.metrics
-    carry_spec = SimCarry(
-        x=t(carry.x, 0),
-        diag=diag_spec,
-        metrics=RunMetrics(t(m.decl_step, 1), t(m.correct, 0), t(m.sq_err, 0), t(m.health, 0)),
-    )
+    carry_spec = t(carry, 0)
     plan_spec = TruthPlan(
         cache=t(plan.cache, 1),
         event_steps=t(plan.event_steps, 1),
@@ -374,7 +354,7 @@ def run_sweep(
             ``events``).
         seed: root seed.
         batch: runs per compiled batch (the batches are made equal, with each device's
-            share rounded up to a multiple of :data:`LANES` = 8 runs).
+            share rounded up to a multiple of :data:`LANES` = 16 runs).
         chunk: time steps per compiled chunk.
         devices: devices to shard the run axis over: ``None`` (all of ``jax.devices()``),
             a count, or a list of devices.
@@ -466,7 +446,7 @@ def run_sweep(
             m = run_batch(setup, plan, keys, carry, N, chunk_len, mesh=mesh, progress=cb)
             done_steps += B * N
             c, r = ci[:real], ri[:real]
-            decl_step[c, r] = m.decl_step[:real]
+            decl_step[c, r] = m.decl_step.T[:real]
             correct[c, r] = m.correct[:real]
             sq_err[c, r] = m.sq_err[:, :real].T
             health[c, r] = m.health[:real]

@@ -247,11 +247,11 @@ class LossParts(NamedTuple):
 class _Acc(NamedTuple):
     ce_sum: jax.Array  # (B,)
     ce_count: jax.Array  # (B,)
-    run: jax.Array  # (B, F) soft run length
-    log_nofalse: jax.Array  # (B, F) sum of log(1 - h) while absent
-    log_surv: jax.Array  # (B, F) log survival since onset (undeclared)
-    delay: jax.Array  # (B, F) sum of survivals (steps)
-    decl_step: jax.Array  # (B, F) int32
+    run: jax.Array  # (F, B) soft run length (fault axis first, as the engine's sets)
+    log_nofalse: jax.Array  # (F, B) sum of log(1 - h) while absent
+    log_surv: jax.Array  # (F, B) log survival since onset (undeclared)
+    delay: jax.Array  # (F, B) sum of survivals (steps)
+    decl_step: jax.Array  # (F, B) int32
 
 
 class _Carry(NamedTuple):
@@ -261,9 +261,9 @@ class _Carry(NamedTuple):
 
 
 def _lse_excluding(log_mu: jax.Array, j: int) -> jax.Array:
-    """``logsumexp`` of ``log_mu[..., i]`` over ``i != j`` (finite when model 0 is)."""
-    M = log_mu.shape[-1]
-    others = [log_mu[..., i] for i in range(M) if i != j]
+    """``logsumexp`` of ``log_mu[i]`` over models ``i != j`` (finite when model 0 is)."""
+    M = log_mu.shape[0]
+    others = [log_mu[i] for i in range(M) if i != j]
     mx = others[0]
     for o in others[1:]:
         mx = jnp.maximum(mx, o)
@@ -292,19 +292,19 @@ def _step(problem: Problem, config: TuneConfig, c: Constrained, params, carry, k
     F = diag.num_faults
     prev = carry.diag
     st, info = diag.step(prev, params, u, y, with_cov=False)
-    log_mu = info.step.log_mode_probs  # (B, M) posterior before the decision
+    log_mu = info.step.log_mode_probs  # (M, B) posterior before the decision
     dtype = log_mu.dtype
     acc = carry.acc
-    declared0 = prev.declared  # (B, F): the bank this step used
+    declared0 = prev.declared  # (F, B): the bank this step used
     declared1 = st.declared
-    present = ((code[:, None] >> jnp.arange(F)) & 1).astype(bool)  # (B, F)
+    present = ((code[None] >> jnp.arange(F)[:, None]) & 1).astype(bool)  # (F, B)
     # --- cross-entropy against the bank slot of the true fault set --------------------
     extra = present & ~declared0
-    n_extra = jnp.sum(extra, axis=-1)
-    valid = jnp.all(~declared0 | present, axis=-1) & (n_extra <= 1)
-    true_idx = jnp.where(n_extra == 0, 0, 1 + jnp.argmax(extra, axis=-1))
-    onehot = true_idx[:, None] == jnp.arange(log_mu.shape[-1])
-    lm_true = jnp.sum(jnp.where(onehot, log_mu, 0.0), axis=-1)
+    n_extra = jnp.sum(extra, axis=0)
+    valid = jnp.all(~declared0 | present, axis=0) & (n_extra <= 1)
+    true_idx = jnp.where(n_extra == 0, 0, 1 + jnp.argmax(extra, axis=0))
+    onehot = true_idx[None] == jnp.arange(log_mu.shape[0])[:, None]
+    lm_true = jnp.sum(jnp.where(onehot, log_mu, 0.0), axis=0)
     lm_true = jnp.where(valid, lm_true, 0.0)
     ce_sum = acc.ce_sum - lm_true
     ce_count = acc.ce_count + valid.astype(dtype)
@@ -314,14 +314,14 @@ def _step(problem: Problem, config: TuneConfig, c: Constrained, params, carry, k
     logit_thr = jnp.log(c.threshold) - jnp.log1p(-c.threshold)
     qs = []
     for j in range(F):
-        act = ~declared0[:, j]
-        lm_j = log_mu[:, j + 1]
+        act = ~declared0[j]
+        lm_j = log_mu[j + 1]
         ok = act & jnp.isfinite(lm_j)
         lm_j = jnp.where(ok, lm_j, 0.0)  # double where: no inf in the differentiated path
         d = (lm_j - _lse_excluding(log_mu, j + 1) - logit_thr) / config.temperature
         d = jnp.where(ok, d, 0.0)
         qs.append(jnp.where(ok, jax.nn.sigmoid(d), 0.0))
-    q = jnp.stack(qs, axis=-1)  # (B, F)
+    q = jnp.stack(qs)  # (F, B)
     gate = jax.nn.sigmoid((jnp.log1p(acc.run) - c.log_hold_gate) / config.hold_temperature)
     h = jnp.minimum(q * gate, _H_MAX)
     log1m_h = jnp.log1p(-h)
@@ -332,7 +332,8 @@ def _step(problem: Problem, config: TuneConfig, c: Constrained, params, carry, k
     delay = acc.delay + jnp.where(window, jnp.exp(log_surv), 0.0)
     decl_step = new_declarations(acc.decl_step, declared0, declared1, k.astype(jnp.int32))
     acc = _Acc(ce_sum, ce_count, run, log_nofalse, log_surv, delay, decl_step)
-    return _Carry(carry.x, st, acc), (log_mu, h, declared1, code)
+    # Per-step trace (trace_surrogate only; the loss path drops it): runs first.
+    return _Carry(carry.x, st, acc), (log_mu.T, h.T, declared1.T, code)
 
 
 def _initial_carry(problem: Problem, batch: TrainingBatch) -> _Carry:
@@ -340,7 +341,7 @@ def _initial_carry(problem: Problem, batch: TrainingBatch) -> _Carry:
     F = problem.diagnoser.num_faults
     n = batch.init.imm.mean.shape[0]
     dtype = batch.init.imm.mean.dtype
-    z = jnp.zeros((B, F), dtype)
+    z = jnp.zeros((F, B), dtype)
     acc = _Acc(
         jnp.zeros((B,), dtype),
         jnp.zeros((B,), dtype),
@@ -348,7 +349,7 @@ def _initial_carry(problem: Problem, batch: TrainingBatch) -> _Carry:
         z,
         z,
         z,
-        jnp.full((B, F), -1, jnp.int32),
+        jnp.full((F, B), -1, jnp.int32),
     )
     return _Carry(jnp.zeros((n, B), dtype), batch.init, acc)
 
@@ -454,11 +455,11 @@ def loss_and_parts(
     a = carry.acc
     dtype = a.ce_sum.dtype
     ce = jnp.mean(a.ce_sum / jnp.maximum(a.ce_count, 1.0))
-    delay = jnp.mean(jnp.sum(a.delay, axis=-1)) * problem.dt
-    false = jnp.mean(jnp.sum(-a.log_nofalse, axis=-1))
+    delay = jnp.mean(jnp.sum(a.delay, axis=0)) * problem.dt
+    false = jnp.mean(jnp.sum(-a.log_nofalse, axis=0))
     w = jnp.asarray(config.weights if weights is None else weights, dtype)
     total = (w[0] * ce + w[1] * delay + w[2] * false).astype(dtype)
-    return total, LossParts(total, ce, delay, false, a.decl_step)
+    return total, LossParts(total, ce, delay, false, a.decl_step.T)
 
 
 def trace_surrogate(raw: TunableParams, problem: Problem, batch: TrainingBatch, config):
