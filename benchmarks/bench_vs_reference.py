@@ -127,6 +127,10 @@ def _bank(setup):
     return bank, kw
 
 
+def _imm_filter_call(bank, u, y, kw):
+    return uimm_jax.imm_filter(bank, inputs=u, measurements=y, **kw).mode_probs
+
+
 def _random_bank(M: int, rng) -> tuple:
     """A stable random bank of M models (n = m = 3, p = 1) and imm_filter kwargs."""
     n = 3
@@ -176,10 +180,7 @@ def main(argv=None):
         if B == 1:
             bank, kw = _bank(s)
             uf, yf = u[:, None], y[:, :, 0]
-            variants["imm_filter"] = (
-                lambda: uimm_jax.imm_filter(bank, inputs=uf, measurements=yf, **kw).mode_probs,
-                (),
-            )
+            variants["imm_filter"] = (_imm_filter_call, (bank, uf, yf, kw))
         first, outs, times = _interleave(variants, args.repeat)
         base = np.median(times["reference"])
         for k in variants:
@@ -205,12 +206,7 @@ def main(argv=None):
     mvars = {}
     for M in (4, 8, 16, 32):
         bank, kw = _random_bank(M, rng)
-        mvars[f"imm_filter M={M}"] = (
-            lambda bank=bank, kw=kw: uimm_jax.imm_filter(
-                bank, inputs=uM, measurements=yM, **kw
-            ).mode_probs,
-            (),
-        )
+        mvars[f"imm_filter M={M}"] = (_imm_filter_call, (bank, uM, yM, kw))
     first, _, times = _interleave(mvars, args.repeat)
     base = np.median(times["imm_filter M=4"])
     for k in mvars:
