@@ -166,11 +166,8 @@ class _LinearBank(abc.ABC):
     def observe(self, cache: LinearCache, x: jax.Array):
         """``y_pred = C x + d`` and ``H = C`` (a NumPy constant when it is one)."""
         C = self.const_C if cache.C is None else cache.C
-        d = cache.d
-        if d is None:
-            d = self.const_d
-            d = jnp.asarray(d, x.dtype).reshape(d.shape + (1,) * (x.ndim - 1))
-        return bk.mv(C, x) + d, C
+        d = jnp.asarray(self.const_d if cache.d is None else cache.d, x.dtype)
+        return bk.mv(C, x) + bk.align(d, 1, x.ndim - 1), C
 
 
 @final
@@ -333,8 +330,18 @@ class NonlinearDynamics:
 class MatrixBankDynamics(_LinearBank):
     """Discrete-time linear bank given directly as matrices (see ``LinearGaussianBank``).
 
-    The cache is a :class:`LinearCache` built by the caller; ``C`` and ``d`` live in it.
+    The cache is a :class:`LinearCache` built by the caller.  When every model shares
+    ``C`` and ``d``, pass them here as NumPy constants (the cache's ``C``/``d`` are then
+    ``None``): a shared identity ``C`` is then free in the algebra.
+
+    Args:
+        const_C: ``(m, n)`` shared measurement matrix, or ``None`` (it is in the cache).
+        const_d: ``(m,)`` shared measurement offset, or ``None``.
     """
+
+    def __init__(self, const_C: np.ndarray | None = None, const_d: np.ndarray | None = None):
+        self.const_C = const_C
+        self.const_d = const_d
 
     def prepare(self, theta):  # pragma: no cover - the cache is given, not derived
         """A matrix bank has no parameters: its cache is built by the caller."""

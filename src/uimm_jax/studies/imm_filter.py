@@ -28,6 +28,7 @@ from uimm_jax._checks import (
 )
 from uimm_jax.engine.dynamics import LinearCache, MatrixBankDynamics
 from uimm_jax.engine.imm import IMMParams, IMMState, imm_step
+from uimm_jax.engine.scan import as_batch_of_one, drop_batch_of_one
 from uimm_jax.errors import UIMMWarning
 
 __all__ = ["IMMResult", "LinearGaussianBank", "imm_filter"]
@@ -89,15 +90,28 @@ def _warn_if_float32(dtype) -> None:
         )
 
 
-_MATRIX_DYN = MatrixBankDynamics()
+@functools.lru_cache(maxsize=16)
+def _matrix_dynamics(identity_C: int | None) -> MatrixBankDynamics:
+    """The bank's dynamics object (a static argument of the scan, cached).
+
+    With ``C = I`` (its size given) shared by every model, ``C`` is a trace-time constant
+    that costs nothing; otherwise it lives in the cache, so new data never recompiles.
+    """
+    if identity_C is None:
+        return MatrixBankDynamics()
+    return MatrixBankDynamics(np.eye(identity_C), np.zeros(identity_C))
 
 
-@functools.partial(jax.jit, static_argnames=("gate", "keep_model_mean"))
-def _imm_scan(cache, params, state0, inputs, measurements, gate, keep_model_mean):
+@functools.partial(jax.jit, static_argnames=("dyn", "gate", "keep_model_mean"))
+def _imm_scan(dyn, cache, params, state0, inputs, measurements, gate, keep_model_mean):
+    # One run scanned as a batch of one: twice as fast on XLA CPU (engine.scan); the
+    # reshapes happen inside this compiled function, where they cost nothing.
+    state0, inputs, measurements = as_batch_of_one((state0, inputs, measurements))
+
     def body(state, uy):
         u, y = uy
         new, info = imm_step(
-            _MATRIX_DYN,
+            dyn,
             state,
             cache,
             params,
@@ -117,7 +131,9 @@ def _imm_scan(cache, params, state0, inputs, measurements, gate, keep_model_mean
             out = out + (new.mean,)
         return new, out
 
-    return jax.lax.scan(body, state0, (inputs, measurements))
+    _, out = jax.lax.scan(body, state0, (inputs, measurements))
+    out = drop_batch_of_one(out)
+    return (jnp.exp(out[0]),) + out
 
 
 def imm_filter(
@@ -226,26 +242,24 @@ def imm_filter(
     def bm(a, lead):  # (M, *mat) -> (*mat, M)
         return jnp.asarray(np.moveaxis(a, 0, -1), dtype)
 
-    cache = LinearCache(bm(A, 2), bm(B, 2), bm(C, 2), jnp.zeros((m, M), dtype))
+    identity = m == n and bool(np.all(C == np.eye(n)))
+    dyn = _matrix_dynamics(n if identity else None)
+    if identity:
+        cache = LinearCache(bm(A, 2), bm(B, 2), None, None)
+    else:
+        cache = LinearCache(bm(A, 2), bm(B, 2), bm(C, 2), jnp.zeros((m, M), dtype))
     with np.errstate(divide="ignore"):
         log_p = np.log(P)
     params = IMMParams(jnp.asarray(log_p, dtype), bm(Q, 2), bm(R, 2))
     with np.errstate(divide="ignore"):
         log_mu0 = np.log(mu0)
     state0 = IMMState(bm(x0, 1), bm(P0, 2), jnp.asarray(log_mu0, dtype))
-    _, out = _imm_scan(
-        cache,
-        params,
-        state0,
-        jnp.asarray(u, dtype),
-        jnp.asarray(y, dtype),
-        gate,
-        return_model_means,
-    )
+    us, ys = jnp.asarray(u, dtype), jnp.asarray(y, dtype)
+    mode_probs, *out = _imm_scan(dyn, cache, params, state0, us, ys, gate, return_model_means)
     log_mu, mean, cov, mll, inc, health = out[:6]
     model_mean = jnp.moveaxis(out[6], -1, 1) if return_model_means else None
     return IMMResult(
-        mode_probs=jnp.exp(log_mu),
+        mode_probs=mode_probs,
         log_mode_probs=log_mu,
         mean=mean,
         cov=cov,
