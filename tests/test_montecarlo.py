@@ -308,7 +308,8 @@ def _simulate_one(dyn, dt, num_steps, plan, signal, key):
     def body(x, k):
         t = k.astype(x.dtype) * dt
         u = jnp.full((1,), input_value(signal, t), x.dtype)
-        xn, y, code = truth_step(dyn, plan, x, k, u, key)
+        z = jax.random.normal(jax.random.fold_in(key, k), (6,), x.dtype)  # the documented draw
+        xn, y, code = truth_step(dyn, plan, x, k, u, z)
         return xn, (u, xn, y, code)
 
     _, out = jax.lax.scan(body, jnp.zeros(3), jnp.arange(num_steps, dtype=jnp.int32))

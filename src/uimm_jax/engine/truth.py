@@ -38,6 +38,7 @@ __all__ = [
     "phase_caches",
     "plan_phases",
     "run_keys",
+    "standard_noise",
     "truth_plan",
     "truth_step",
 ]
@@ -310,8 +311,29 @@ def _select(leaf: jax.Array, onehot: jax.Array) -> jax.Array:
     return jnp.sum(leaf * onehot.astype(leaf.dtype), axis=-1)
 
 
+def standard_noise(key: jax.Array, k: jax.Array, size: int, runs: tuple, dtype) -> jax.Array:
+    """The standard normal draw of step ``k``: ``(size, *runs)``.
+
+    Each run's draw is ``normal(fold_in(key_r, k), (size,))``: it depends on the run's key
+    and the step only, never on the batch, the chunk or the device that computes it.
+
+    Args:
+        key: raw uint32 key(s) of the run(s): ``(2,)`` or ``(*runs, 2)``.
+        k: the step (int scalar).
+        size: ``n + m``, the process and measurement noise channels.
+        runs: the run axes of the batch (the draw is broadcast over them for one key).
+        dtype: float dtype.
+    """
+    flat_keys = key.reshape(-1, key.shape[-1])
+    z = jax.vmap(lambda kk: jax.random.normal(jax.random.fold_in(kk, k), (size,), dtype))(
+        flat_keys
+    )
+    z = jnp.moveaxis(z, 0, -1).reshape((size,) + (runs if key.ndim > 1 else ()))
+    return jnp.broadcast_to(z, (size,) + runs)
+
+
 def truth_step(
-    dyn: Any, plan: TruthPlan, x: jax.Array, k: jax.Array, u: jax.Array, key: jax.Array
+    dyn: Any, plan: TruthPlan, x: jax.Array, k: jax.Array, u: jax.Array, z: jax.Array
 ) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Advance the truth one step and measure it.
 
@@ -321,26 +343,18 @@ def truth_step(
         x: ``(n, *runs)`` state ``x[k-1]``.
         k: step index (scalar int).
         u: ``(p, *runs)`` input ``u[k-1]`` applied over the step.
-        key: PRNG key(s) of the run(s): ``(2,)`` or ``(*runs, 2)`` (raw uint32 keys).
+        z: ``(n + m, *runs)`` the step's standard normal draw (:func:`standard_noise`).
 
     Returns:
         ``(x_next, y, true_code)`` with ``y`` ``(m, *runs)`` and the truth code ``(*runs,)``.
     """
     n = x.shape[0]
-    m = plan.Gr.shape[0]
-    runs = x.shape[1:]
     ph = phase_index(plan, k)
     K = plan.true_codes.shape[-1]
     onehot = ph[..., None] == jnp.arange(K)
     cache = jax.tree.map(lambda leaf: _select(leaf, onehot)[..., None], plan.cache)
     xn, _ = dyn.predict(cache, x[..., None], u[..., None])
     yp, _ = dyn.observe(cache, xn)
-    flat_keys = key.reshape(-1, key.shape[-1])
-    z = jax.vmap(lambda kk: jax.random.normal(jax.random.fold_in(kk, k), (n + m,), x.dtype))(
-        flat_keys
-    )
-    z = jnp.moveaxis(z, 0, -1).reshape((n + m,) + (runs if key.ndim > 1 else ()))
-    z = jnp.broadcast_to(z, (n + m,) + runs)
     x_next = xn[..., 0] + bk.mv(plan.Gq, z[:n])
     y = yp[..., 0] + bk.mv(plan.Gr, z[n:])
     code = jnp.sum(jnp.where(onehot, plan.true_codes, 0), axis=-1)
