@@ -10,6 +10,9 @@ Every configuration runs in its own subprocess (fresh XLA, its own peak memory V
   per step stored) on a batch of B runs of the paper's simulation 1
   (valve wear at 30 % of the run, leakage at 60 %), on 1 device, and on 2 forced host
   devices (``--xla_force_host_platform_device_count=2``, the run axis sharded);
+* ``reference``: ``../shared/perf/reference_step.py`` (the filter step only, no truth) on a
+  batch of 64 runs of the same truth, 1 device: the engine issue's measuring stick; the
+  table gives every row's time per run-step against it (truth counted in the fused rows);
 * ``memory``: a fixed batch over 1e4 and 1e6 samples (same compiled chunk of 1e4 steps):
   the peak must not grow with the number of samples.
 
@@ -68,7 +71,40 @@ def worker(args) -> dict:
     sc = _scenario(args.steps)
     N, L = args.steps, args.chunk
     rss0 = vm_mib("VmRSS")
-    if args.worker == "single":
+    if args.worker == "reference":
+        import importlib.util
+
+        src = ROOT.parent / "shared" / "perf" / "reference_step.py"
+        spec = importlib.util.spec_from_file_location("reference_step", src)
+        ref = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(ref)
+        from uimm_jax.engine.scan import truth_scan
+
+        setup = run.setup_scenario(sc, "uimm")
+        B = args.batch
+        onset = np.tile(np.array([round(0.3 * N), round(0.6 * N), -1]), (B, 1))
+        noise_keys, _ = run_keys(sc.seed, B)
+        plan, keys, carry = sweep.batch_inputs(
+            setup, onset, np.ones(onset.shape), np.ones(B), noise_keys, 3, jnp.float64
+        )
+        _, (us, _, ys, _) = jax.jit(
+            lambda pl, k, x, ks: truth_scan(
+                setup.diagnoser.dyn, float(sc.dt), 1, pl, setup.signal, k, x, ks
+            )
+        )(plan, keys, carry.x, jnp.arange(N, dtype=jnp.int32))
+        step = ref.make_step()
+        scan = jax.jit(lambda c, u, z: jax.lax.scan(step, c, (u, z)))
+        c0 = ref.init(B)
+
+        def once(n):
+            t0 = time.perf_counter()
+            jax.block_until_ready(scan(c0, us[:n], ys[:n]))
+            return time.perf_counter() - t0
+
+        t_first = once(N)
+        hwm_compile = vm_mib("VmHWM")
+        t_run = min(once(N) for _ in range(3))
+    elif args.worker == "single":
 
         def once(n):
             s = run.setup_scenario(_scenario(n) if n != N else sc, "uimm")
@@ -157,7 +193,7 @@ def _steps_for(batch: int, target: float, chunk: int) -> tuple[int, int]:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--worker", choices=("single", "fused"), help=argparse.SUPPRESS)
+    p.add_argument("--worker", choices=("single", "fused", "reference"), help=argparse.SUPPRESS)
     p.add_argument("--batch", type=int, default=1, help=argparse.SUPPRESS)
     p.add_argument("--steps", type=int, default=10_000, help=argparse.SUPPRESS)
     p.add_argument("--check", action="store_true", help=argparse.SUPPRESS)
@@ -174,6 +210,7 @@ def main(argv=None) -> int:
     p.add_argument("--run-steps", type=float, default=2e6, help="run-steps timed per configuration")
     p.add_argument("--chunk", type=int, default=5000, help="steps per compiled chunk")
     p.add_argument("--mem-batch", type=int, default=32, help="batch of the memory test")
+    p.add_argument("--ref-batch", type=int, default=64, help="runs of the reference row")
     p.add_argument("--mem-steps", default="10000,1000000", help="sample counts of the memory test")
     p.add_argument("--quick", action="store_true", help="a short smoke run")
     p.add_argument("--json", help="also write the rows to this JSON file")
@@ -182,7 +219,7 @@ def main(argv=None) -> int:
         print(json.dumps(worker(args)))
         return 0
     if args.quick:
-        args.batches, args.two_device_batches = "1,16,128", "128"
+        args.batches, args.two_device_batches = "1,16,128", "64,128"
         args.run_steps, args.mem_steps = 5e5, "10000,100000"
     batches = [int(b) for b in args.batches.split(",") if b]
     two = [int(b) for b in args.two_device_batches.split(",") if b]
@@ -204,6 +241,13 @@ def main(argv=None) -> int:
         f"(compile {base['compile_s']:.1f} s)",
         flush=True,
     )
+    refs = []
+    if (ROOT.parent / "shared" / "perf" / "reference_step.py").exists():
+        n, L = _steps_for(args.ref_batch, args.run_steps, args.chunk)
+        ref = _spawn("reference", args.ref_batch, n, n, 1, 1800)
+        ref["label"] = f"reference step (shared/perf, filter only), B={args.ref_batch}, 1 device"
+        refs.append(ref)
+        print(f"{ref['label']}: {ref['run_steps_per_s'] / 1e6:.3f} M run-steps/s", flush=True)
     for devices, bs in ((1, batches), (2, two)):
         for b in bs:
             n, L = _steps_for(b, args.run_steps, args.chunk)
@@ -228,13 +272,17 @@ def main(argv=None) -> int:
             flush=True,
         )
     print()
-    print("| configuration | run-steps/s | vs single run | compile (s) | peak RSS (MiB) |")
-    print("|---|---|---|---|---|")
-    for r in rows:
+    head = "| configuration | run-steps/s | vs single run | time per run-step vs reference "
+    print(head + "| compile (s) | peak RSS (MiB) |")
+    print("|---|---|---|---|---|---|")
+    for r in rows + refs:
+        vs_ref = (
+            f"{refs[0]['run_steps_per_s'] / r['run_steps_per_s']:.2f}x" if refs else "n/a"
+        )
         print(
             f"| {r['label']} | {r['run_steps_per_s'] / 1e6:.3f} M | "
-            f"{r['run_steps_per_s'] / base['run_steps_per_s']:.2f}x | {r['compile_s']:.1f} | "
-            f"{r['hwm_end_mib']:.0f} |"
+            f"{r['run_steps_per_s'] / base['run_steps_per_s']:.2f}x | {vs_ref} | "
+            f"{r['compile_s']:.1f} | {r['hwm_end_mib']:.0f} |"
         )
     print()
     print("| memory test | samples | peak after compile (MiB) | peak at end (MiB) |")
@@ -246,7 +294,8 @@ def main(argv=None) -> int:
         )
     print(f"\ntotal wall time {time.perf_counter() - t_all:.0f} s")
     if args.json:
-        Path(args.json).write_text(json.dumps({"rows": rows, "memory": mem}, indent=2) + "\n")
+        doc = {"rows": rows, "reference": refs, "memory": mem}
+        Path(args.json).write_text(json.dumps(doc, indent=2) + "\n")
     return 0
 
 
