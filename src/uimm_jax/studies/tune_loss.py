@@ -22,7 +22,7 @@ import numpy as np
 
 from uimm_jax.engine.metrics import new_declarations
 from uimm_jax.engine.scan import scan_chunked, truth_sample
-from uimm_jax.engine.truth import NEVER, TruthPlan, run_keys
+from uimm_jax.engine.truth import NEVER, TruthPlan, run_keys, standard_noise
 from uimm_jax.engine.uimm import DiagParams, DiagState
 from uimm_jax.studies.run import setup_scenario
 from uimm_jax.studies.truth import build_truth_plan
@@ -271,8 +271,11 @@ def _lse_excluding(log_mu: jax.Array, j: int) -> jax.Array:
     return jnp.log(sum(jnp.exp(o - mx) for o in others)) + mx
 
 
-def _truth(problem: Problem, batch: TrainingBatch, x: jax.Array, k: jax.Array):
-    """Input and truth step ``k`` of every run: ``(u (p, B), x_next, y, code)``."""
+def _truth(problem: Problem, batch: TrainingBatch, x: jax.Array, k: jax.Array, z=None):
+    """Input and truth step ``k`` of every run: ``(u (p, B), x_next, y, code)``.
+
+    ``z`` is the step's noise draw when the caller drew a segment's at once.
+    """
     u, x, y, code = truth_sample(
         problem.diagnoser.dyn,
         problem.dt,
@@ -282,6 +285,7 @@ def _truth(problem: Problem, batch: TrainingBatch, x: jax.Array, k: jax.Array):
         batch.keys,
         x,
         k,
+        z,
     )
     return jnp.full((problem.input_dim,) + x.shape[1:], u, x.dtype), x, y, code
 
@@ -369,14 +373,18 @@ def _run(problem: Problem, config: TuneConfig, c: Constrained, params, batch, ca
 
     def body(cc, xs):
         if data is None:
-            k = xs
-            u, x, y, code = _truth(problem, batch, cc.x, k)
+            k, z = xs
+            u, x, y, code = _truth(problem, batch, cc.x, k, z)
             cc = cc._replace(x=x)
         else:
             k, u, y, code = xs
         return _step(problem, config, c, params, cc, k, u, y, code)[0], None
 
     def segment(cr, xs):
+        if data is None:  # the segment's noise drawn at once (as engine.scan.truth_scan)
+            size = cr.x.shape[0] + batch.plan.Gr.shape[0]
+            draw = lambda k: standard_noise(batch.keys, k, size, cr.x.shape[1:], cr.x.dtype)
+            xs = (xs, jax.vmap(draw)(xs))
         cr, _ = jax.lax.scan(body, cr, xs)
         return cr
 
