@@ -64,7 +64,7 @@ runs beside the hard rule on the same mode probabilities:
 mode probabilities through ``lax.stop_gradient``: the filter parameters (transition,
 noise scales) follow the cross-entropy alone and the decision parameters (threshold,
 hold) the delay and false-declaration terms.  Each block's gradient is the exact gradient
-of its own objective (checked against finite differences in ``tests/test_tuning.py``).
+of its own objective (checked against finite differences in ``tests/studies/test_tuning.py``).
 With ``couple=True`` the whole loss is differentiated with respect to every parameter.
 Measured on paper simulation 1 from the paper's settings, the coupled gradient makes the
 chain *less* sticky (the cheapest way to shrink the false-declaration hazard) until

@@ -40,12 +40,12 @@ from uimm_jax.scenario.parse import parse_scenario
 from uimm_jax.scenario.write import scenario_to_dict
 from uimm_jax.studies import run
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from _engine_helpers import count_backend_compiles  # noqa: E402
 from _reference import make_linear_problem  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SIM1_TUNED = REPO / "scenarios" / "paper_sim1_tuned.toml"
 LOG_2PI = np.log(2.0 * np.pi)
 

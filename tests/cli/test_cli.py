@@ -20,7 +20,7 @@ from uimm_jax.errors import ScenarioError
 from uimm_jax.scenario.parse import load_scenario
 from uimm_jax.studies.run import run_scenario
 
-MALFORMED_DIR = Path(__file__).resolve().parent / "malformed"
+MALFORMED_DIR = Path(__file__).resolve().parents[1] / "malformed"
 CORPUS = sorted(p for p in MALFORMED_DIR.glob("*.toml") if not p.name.startswith("_"))
 
 

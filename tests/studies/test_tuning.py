@@ -27,7 +27,7 @@ from uimm_jax.scenario.parse import load_scenario, parse_scenario
 from uimm_jax.scenario.write import dump_scenario
 from uimm_jax.studies import tune
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 STEPS = 300
 
 

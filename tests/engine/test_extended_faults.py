@@ -19,7 +19,7 @@ from uimm_jax.plants.hydraulic_actuator import HYDRAULIC_ACTUATOR as HA
 from uimm_jax.scenario.parse import load_scenario, parse_scenario
 from uimm_jax.scenario.write import scenario_to_dict
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PAPER = {
     "valve_wear": {"Kq": 2.95, "Kc": 5.175e-9},
     "leakage": {"Cl": 5.0e-9},

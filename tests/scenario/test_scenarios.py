@@ -18,9 +18,9 @@ from uimm_jax.scenario.parse import load_scenario, parse_scenario
 from uimm_jax.scenario.spec import DecisionSpec, EventSpec, InputSpec, Scenario
 from uimm_jax.scenario.write import dump_scenario, scenario_to_dict, scenario_to_toml
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SCENARIOS = REPO / "scenarios"
-MALFORMED_DIR = Path(__file__).resolve().parent / "malformed"
+MALFORMED_DIR = Path(__file__).resolve().parents[1] / "malformed"
 BASE = MALFORMED_DIR / "_valid_base.toml"
 
 PAPER_TRANSITION = np.array(

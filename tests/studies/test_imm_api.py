@@ -18,8 +18,8 @@ import pytest
 
 import uimm_jax
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 
 from _baselines import filterpy_imm, vectorised_numpy_imm  # noqa: E402
 from _engine_helpers import count_backend_compiles  # noqa: E402

@@ -32,7 +32,7 @@ from uimm_jax.studies import run
 from uimm_jax.studies import sweep as mc
 from uimm_jax.studies.sweep_outputs import SweepResult
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SEED = 7
 RUNS = 2
 BATCH = 32  # 10 cells x 2 runs: one batch, padded to 8 runs per device on 4 devices
