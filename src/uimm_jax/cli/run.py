@@ -32,7 +32,18 @@ def register(sub) -> None:
         action="store_true",
         help="run the diagnoser in float32 on a scaled model (docs/robustness.md)",
     )
-    r.add_argument("--no-plots", action="store_true", help="write summary.json only")
+    r.add_argument(
+        "--csv",
+        nargs="?",
+        type=int,
+        const=0,
+        metavar="EVERY",
+        help="also write timeseries.csv: every EVERY-th sample (default: about 10,000 rows) "
+        "plus every sample where the declared or recognised set changes",
+    )
+    r.add_argument(
+        "--no-plots", action="store_true", help="write summary.json and timeseries.npz only"
+    )
     r.add_argument("--quiet", action="store_true", help="no progress output")
     r.set_defaults(func=_cmd_run)
 
@@ -128,9 +139,12 @@ def _print_summary(s: dict) -> None:
 def _cmd_run(args) -> int:
     from uimm_jax._checks import check_out_dir, check_seed
     from uimm_jax.scenario.parse import load_scenario
+    from uimm_jax.studies.exports import write_timeseries, write_timeseries_csv
     from uimm_jax.studies.run import run_scenario
 
     check_seed(args.seed, "--seed")
+    if args.csv is not None and args.csv < 0:
+        raise ValueError(f"--csv: expected a positive sample step (or none), got {args.csv}")
     sc = load_scenario(args.scenario)
     out = check_out_dir(args.out)  # before the run, not after it
     method = args.method or sc.filter.method
@@ -154,7 +168,13 @@ def _cmd_run(args) -> int:
     summary = dict(result.summary)
     summary["wall_time_s"] = time.perf_counter() - t0
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    data = [write_timeseries(result, out / "timeseries.npz")]
+    if args.csv is not None:
+        data.append(write_timeseries_csv(result, out / "timeseries.csv", every=args.csv or None))
     figures = [] if args.no_plots else _write_figures(result, out)
     _print_summary(summary)
-    print(f"wrote {out / 'summary.json'}" + (f" and {len(figures)} figures" if figures else ""))
+    print(
+        f"wrote {out / 'summary.json'}, {', '.join(p.name for p in data)}"
+        + (f" and {len(figures)} figures" if figures else "")
+    )
     return 0

@@ -57,6 +57,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from uimm_jax.engine import metrics
 from uimm_jax.engine.metrics import RunMetrics, init_metrics
 from uimm_jax.engine.scan import SimCarry, scan_chunked, simulate_diagnose
 from uimm_jax.engine.truth import TruthPlan, run_keys
@@ -412,6 +413,7 @@ def run_sweep(
     correct = np.zeros((C, R), np.int64)
     sq_err = np.zeros((C, R, n))
     health = np.zeros((C, R), np.int32)
+    fdi = metrics.FDICounts(*(np.zeros((C, R), t) for t in (np.int64,) * 3 + (np.float64,)))
 
     # Batches: as few as ``batch`` allows, of equal sizes, a multiple of LANES per device.
     jobs_per_method = R * (C // len(spec.methods))
@@ -450,6 +452,8 @@ def run_sweep(
             correct[c, r] = m.correct[:real]
             sq_err[c, r] = m.sq_err[:, :real].T
             health[c, r] = m.health[:real]
+            for acc, got in zip(fdi, m.fdi, strict=True):
+                acc[c, r] = got[:real]
     if report is not None and done_steps < total:
         report("done", total)
     result = SweepResult(
@@ -466,6 +470,8 @@ def run_sweep(
         correct_samples=correct,
         sq_err=sq_err,
         health=health,
+        fdi=fdi,
+        noise_keys=noise_keys,
         runtime_s=time.perf_counter() - t_start,
         devices=nd,
         batch=B,
