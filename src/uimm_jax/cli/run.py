@@ -117,11 +117,13 @@ def _write_figures(result, out: Path) -> list[str]:
 def _print_summary(s: dict) -> None:
     print(
         f"scenario      {s['scenario']}  ({s['method']}, {s['num_models']} models, "
-        f"{s['num_steps']} steps of {s['dt']:g} s)"
+        f"{s['num_steps']} steps of {s['dt']:g} s, {s['dtype']})"
     )
     for e in s["events"]:
         d = s["detection_delay_s"].get(e["fault"])
         verdict = f"declared after {d * 1e3:.1f} ms" if d is not None else "NOT declared"
+        if e["time"] >= s["duration_s"]:  # measured data that ends before the event
+            verdict = f"outside the data (it ends at {s['duration_s']:g} s)"
         print(f"  truth  {e['fault']:<22s} at {e['time']:8.3f} s -> {verdict}")
     for d in s["declarations"]:
         tag = "ok" if d["correct"] else "FALSE"
@@ -143,6 +145,8 @@ def _cmd_run(args) -> int:
     from uimm_jax.studies.run import run_scenario
 
     check_seed(args.seed, "--seed")
+    if args.measurements is not None and not args.measurements.strip():
+        raise ValueError("--measurements: empty path; give a .csv, .npy or .npz file")
     if args.csv is not None and args.csv < 0:
         raise ValueError(f"--csv: expected a positive sample step (or none), got {args.csv}")
     sc = load_scenario(args.scenario)
@@ -151,7 +155,7 @@ def _cmd_run(args) -> int:
     if args.float32:  # scaled float32 diagnoser (uimm_jax.studies.float32, docs/robustness.md)
         from uimm_jax.studies.float32 import run_scenario_float32 as run_scenario
     measurements = None
-    if args.measurements:
+    if args.measurements is not None:
         from uimm_jax.scenario.measured import load_measurements
 
         measurements = load_measurements(args.measurements, sc)
