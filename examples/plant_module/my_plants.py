@@ -27,6 +27,7 @@ def matrices(p):
 MASS_SPRING = LinearPlant(
     name="mass_spring",
     state_names=("x", "v"),
+    state_units=("m", "m/s"),
     input_names=("F",),
     output_names=("x", "v"),
     param_names=("m", "k", "c"),

@@ -72,7 +72,7 @@ class _Progress:
 def _write_figures(result, out: Path) -> list[str]:
     import numpy as np
 
-    from uimm_jax.studies import plots
+    from uimm_jax.studies import plots, plots_run
 
     sc = result.setup.scenario
     diag = result.setup.diagnoser
@@ -82,14 +82,18 @@ def _write_figures(result, out: Path) -> list[str]:
     events = [(e["time"], e["fault"]) for e in s["events"]]
     decl = [(d["time"], d["fault"]) for d in s["declarations"]]
     title = f"{sc.name} ({s['method'].upper()}, {s['num_models']} models)"
+    uimm = s["method"] == "uimm"
     figs = {
-        "mode_probabilities.png": plots.plot_mode_probabilities(
+        "mode_probabilities.png": plots_run.plot_mode_probabilities_detail(
             t,
             o["mode_probs"],
             diag.model_labels(),
             events=events,
             declarations=decl,
-            title=f"Mode probabilities - {title}",
+            declared_sets=plots_run.declared_set_labels(decl) if uimm else (),
+            delays=s["detection_delay_s"],
+            title=f"Mode probabilities - {title}"
+            + (": model 0 is D, the declared set" if uimm else ""),
         ),
         "mode_recognition.png": plots.plot_mode_recognition(
             t,
@@ -103,7 +107,12 @@ def _write_figures(result, out: Path) -> list[str]:
             result.truth["x"],
             o["mean"],
             list(sc.plant.state_names),
-            title=f"Estimated vs true states - {title}",
+            units=list(sc.plant.state_units) or None,
+            title=(
+                f"Estimated vs true states - {title}"
+                if np.isfinite(result.truth["x"]).any()
+                else f"Estimated states (measured data: true states unknown) - {title}"
+            ),
         ),
         "model_count.png": plots.plot_model_count(max(10, diag.num_faults)),
     }

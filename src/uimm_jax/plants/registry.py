@@ -124,7 +124,7 @@ def _plant_from_entry_point(ep) -> Plant:
 _IMPORTED: dict[str, ModuleType] = {}
 
 
-def import_plant_module(module: str, base_dir: str | Path | None = None) -> ModuleType:
+def import_plant_module(module: str, base_dir: str | Path | None = None) -> str:
     """Import a user module that defines plants, and register its plants.
 
     ``module`` is looked for, in this order, as a ``.py`` file (``"my_plants"`` ->
@@ -139,7 +139,9 @@ def import_plant_module(module: str, base_dir: str | Path | None = None) -> Modu
             directory).
 
     Returns:
-        The imported module.
+        The module's resolved name: the absolute path of a ``.py`` file (so that a copy
+        of the scenario written elsewhere, e.g. by ``uimm-jax tune``, still finds it), or
+        the module name.
 
     Raises:
         ValueError: the file or module does not exist, importing it fails, or it defines
@@ -167,7 +169,7 @@ def import_plant_module(module: str, base_dir: str | Path | None = None) -> Modu
             ) from exc
         _register_module_plants(mod, module)
         _IMPORTED[key] = mod
-    return _IMPORTED[key]
+    return key
 
 
 def _import_file(path: Path) -> ModuleType:

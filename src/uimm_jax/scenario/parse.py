@@ -33,8 +33,9 @@ import numpy as np
 from uimm_jax._checks import MAX_INT32, MAX_SEED, ROW_SUM_TOL, probability_problem, type_name
 from uimm_jax.errors import ScenarioError, UIMMWarning
 from uimm_jax.plants.base import Plant
-from uimm_jax.plants.registry import get_plant, import_plant_module, list_plants
+from uimm_jax.plants.registry import get_plant, list_plants
 from uimm_jax.scenario._fields import FieldChecker, plain, suggest, toml_key
+from uimm_jax.scenario._plant import import_module_of
 from uimm_jax.scenario.spec import (
     DEFAULT_INITIAL_COV,
     INPUT_KINDS,
@@ -217,7 +218,7 @@ class _Parser(FieldChecker):
             )
         seed = self.integer(top.get("seed", 0), "seed", low=0, high=MAX_SEED)
 
-        plant_module = self.plant_module(top["plant"])
+        plant_module = import_module_of(self, top["plant"])
         plant, plant_params = self.parse_plant(top["plant"])
         nominal = {k: float(v) for k, v in plant.nominal.items()}
         nominal.update(plant_params)
@@ -250,22 +251,6 @@ class _Parser(FieldChecker):
             plant_module=plant_module,
         )
         return scenario, self.notes
-
-    def plant_module(self, value: Any) -> str | None:
-        """Import ``[plant].module`` (before the plant is looked up); its resolved name."""
-        table = self.table(value, "[plant]")
-        if "module" not in table:
-            return None
-        module = self.string(table["module"], "[plant].module")
-        source = Path(self.source)
-        base = source.parent if source.is_file() else Path.cwd()
-        try:
-            mod = import_plant_module(module, base)
-        except ValueError as exc:
-            self.fail("[plant].module", f"{exc}.")
-        # A file is kept by its absolute path, so that a written copy of the scenario
-        # (tune's output) finds it from any folder; a module by its name.
-        return module if mod.__name__ == module else str(Path(mod.__file__).resolve())
 
     def parse_plant(self, value: Any) -> tuple[Plant, dict[str, float]]:
         table = self.table(value, "[plant]")

@@ -45,7 +45,7 @@ from typing import NamedTuple
 import numpy as np
 
 from uimm_jax.engine import metrics
-from uimm_jax.scenario.sweep import SweepSpec
+from uimm_jax.scenario.sweep import FAULT_FREE, SweepSpec
 from uimm_jax.studies.exports import write_runs_csv
 
 __all__ = ["Cell", "SweepResult", "cell_summary", "write_sweep_outputs"]
@@ -321,9 +321,12 @@ def write_sweep_outputs(
 
     ``runs.csv`` has one row per run (:func:`uimm_jax.studies.exports.run_rows`).
 
-    Figures: ``sweep_<case>.png`` (detection probability with Wilson intervals and median
-    delay against magnitude, every method on the same axes) for each fault case, and
-    ``confusion_<method>.png`` (the confusion counts summed over the method's cells).
+    Figures: ``sweep_<case>.png`` for each fault case (detection probability and median
+    delay per fault, isolation accuracy, false declarations per run, mode accuracy and
+    TDR / FAR / FIA against magnitude, every method on the same axes, the fault-free
+    cells as reference lines; see :func:`~uimm_jax.studies.plots_sweep.plot_sweep`), and
+    ``confusion_<method>.png`` (one confusion matrix per magnitude, summed over the
+    method's cells of that magnitude, coloured by the share of each row).
 
     Args:
         result: the :class:`SweepResult`.
@@ -355,19 +358,26 @@ def write_sweep_outputs(
         cells = [s for s in result.summaries if s["case"] == case.name]
         fig = plots_sweep.plot_sweep(
             cells,
+            fault_free=[s for s in result.summaries if s["case"] == FAULT_FREE],
             title=f"{result.scenario}: case {case.name!r}, {result.spec.runs} runs per cell "
             "(95 % Wilson intervals)",
         )
         written.append(plots.save_figure(fig, out / f"sweep_{_safe(case.name)}.png"))
     for method in result.spec.methods:
         ss = [s for s in result.summaries if s["method"] == method]
-        mat = np.sum([s["confusion"]["matrix"] for s in ss], axis=0)
+        panels = []
+        for mag in sorted({s["magnitude"] for s in ss}):
+            group = [s for s in ss if s["magnitude"] == mag]
+            mat = np.sum([s["confusion"]["matrix"] for s in group], axis=0)
+            name = "fault-free runs" if mag == 0 else f"magnitude {mag:g}"
+            panels.append((f"{name} ({len(group)} cell{'s' * (len(group) > 1)})", mat))
         conf = ss[0]["confusion"]
-        fig = plots_sweep.plot_confusion(
-            mat,
+        fig = plots_sweep.plot_confusion_grid(
+            panels,
             conf["rows"],
             conf["columns"],
-            title=f"{method.upper()}: first new declaration per event ({len(ss)} cells)",
+            title=f"{method.upper()}: first new declaration per event, by magnitude "
+            "(colour: share of the row)",
         )
         written.append(plots.save_figure(fig, out / f"confusion_{method}.png"))
     return written
