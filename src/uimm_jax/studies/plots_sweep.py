@@ -206,6 +206,8 @@ def plot_sweep(
             ax.set_xlabel("fault magnitude")
     for ax in (ax_p, ax_i, ax_m, ax_r):
         ax.set_ylim(-0.03, 1.03)
+    top = max([1.0] + [float(v) for ln in ax_f.get_lines() for v in np.atleast_1d(ln.get_ydata())])
+    ax_f.set_ylim(-0.03 * top, 1.05 * top)  # all zero: a 0..1 axis, not a 1e-17 one
     pos = [d for d in delays_all if d > 0]
     if pos and len(pos) == len(delays_all) and max(pos) / min(pos) > 50:
         ax_d.set_yscale("log")
@@ -276,15 +278,25 @@ def plot_confusion_grid(
             )
     r, c = mats[0].shape if mats else (len(row_labels), len(col_labels))
     n = max(len(mats), 1)
-    fig = Figure(figsize=(1.6 + n * (1.2 + 1.0 * c), 1.4 + 0.7 * r + 0.8), layout="constrained")
-    axes = fig.subplots(1, n, squeeze=False)[0]
+    ncols = min(n, 3)  # at most three panels a row: the figure stays readable
+    nrows = -(-n // ncols)
+    fig = Figure(
+        figsize=(1.8 + ncols * (1.2 + 1.0 * c), nrows * (0.9 + 0.7 * r) + 1.0),
+        layout="constrained",
+    )
+    grid = fig.subplots(nrows, ncols, squeeze=False)
+    axes = list(grid.reshape(-1))
+    for ax in axes[n:]:
+        ax.remove()
+    axes = axes[:n]
+    first_col = {id(row[0]) for row in grid}
     im = None
     for ax, (name, _), values in zip(axes, panels, mats, strict=False):
         im = _draw_confusion(ax, values.astype(float), normalise_rows)
         ax.set_xticks(range(c), list(col_labels), rotation=30, ha="right")
-        ax.set_yticks(range(r), list(row_labels) if ax is axes[0] else [""] * r)
+        ax.set_yticks(range(r), list(row_labels) if id(ax) in first_col else [""] * r)
         ax.set_xlabel("declared fault")
-        if ax is axes[0]:
+        if id(ax) in first_col:
             ax.set_ylabel("true fault")
         if name:
             ax.set_title(name, fontsize=10)
@@ -316,7 +328,7 @@ def _draw_confusion(ax, values: np.ndarray, normalise_rows: bool):
             dy = -0.12 if normalise_rows else 0.0
             ax.text(j, i + dy, text, ha="center", va="center", color=colour, fontsize=10)
             if normalise_rows:
-                share = f"{100 * colours[i, j]:.0f} %"
+                share = f"{100 * colours[i, j]:.0f} %" if values[i].sum() > 0 else "-"
                 ax.text(j, i + 0.22, share, ha="center", va="center", color=colour, fontsize=7)
     return im
 
