@@ -144,3 +144,36 @@ def test_run_csv_flag_is_checked(tmp_path, capsys):
     path = write_short(tmp_path / "s.toml", 1)
     assert cli.main(["run", str(path), "--csv", "-3", "--out", str(tmp_path / "o")]) == 2
     assert "--csv" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("method", ["uimm", "imm"])
+def test_diagnoser_true_set_log_prob_is_the_generic_definition(method):
+    """The fast per-step FIA term equals the sum over the models of the true set."""
+    import warnings
+
+    import jax
+
+    from uimm_jax.engine.bank import set_codes
+    from uimm_jax.scenario.parse import load_scenario
+    from uimm_jax.studies.run import setup_scenario
+
+    sc = load_scenario("scenarios/paper_sim1_tuned.toml")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # initial_mode_probs adapted for "imm"
+        diag = setup_scenario(sc, method).diagnoser
+    F, M, B = diag.num_faults, diag.num_models, 64
+    rng = np.random.default_rng(5)
+    declared = jnp.asarray(rng.random((F, B)) < 0.4)
+    code = jnp.asarray(rng.integers(0, 2**F, B), jnp.int32)
+    code = code.at[:8].set(set_codes(declared)[:8])  # the true set is D itself
+    log_p = jax.nn.log_softmax(jnp.asarray(rng.normal(size=(M, B))), axis=0)
+    if method == "uimm":  # declared hypotheses are masked out of the bank
+        active = jnp.concatenate([jnp.ones((1, B), bool), ~declared], 0)
+        log_p = jnp.where(active, log_p, -jnp.inf)
+    got = np.exp(np.asarray(diag.true_set_log_prob(log_p, declared, code)))
+    model_codes = set_codes(diag.model_sets(declared))
+    want = np.asarray(metrics.true_set_probability(jnp.exp(log_p), model_codes, code))
+    np.testing.assert_allclose(got, want, rtol=1e-14, atol=0)
+    assert (want > 0).sum() > B // 4
+    if method == "uimm":  # some true sets are held by no model of the bank
+        assert (want == 0).sum() > 0

@@ -35,7 +35,9 @@ On the device, :class:`RunMetrics` accumulates them in a scan carry
     it, e.g. a UIMM bank relative to a wrong declared set).
 
   Over several runs the counts are pooled (ratios of sums over all samples); a rate
-  whose denominator is 0 is ``None``;
+  whose denominator is 0 is ``None``.  :func:`true_set_probability` is the definition
+  of FIA's per-sample term over any bank; the diagnosers compute it in one masked
+  maximum (``Diagnoser.true_set_log_prob``, tested equal to it);
 * health counts: samples (or runs) with each health bit (:data:`HEALTH_FLAGS`);
 * :func:`wilson_interval`: the Wilson score interval of a proportion.
 """

@@ -28,8 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from uimm_jax.engine.bank import set_codes
-from uimm_jax.engine.metrics import RunMetrics, true_set_probability, update_metrics
+from uimm_jax.engine.metrics import RunMetrics, update_metrics
 from uimm_jax.engine.truth import InputSignal, TruthPlan, input_value, truth_step
 
 __all__ = [
@@ -176,8 +175,7 @@ def diagnose_scan(diag, p: int, params, carry: SimCarry, ks, us, xs, ys, codes) 
         u = jnp.full((p,) + x.shape[1:], u, x.dtype)
         st, info = diag.step(c.diag, params, u, y, with_cov=False)
         # The bank the mode probabilities refer to: the declared set before the step.
-        model_codes = set_codes(diag.model_sets(c.diag.declared))
-        true_prob = true_set_probability(jnp.exp(info.step.log_mode_probs), model_codes, code)
+        lp = diag.true_set_log_prob(info.step.log_mode_probs, c.diag.declared, code)
         m = update_metrics(
             c.metrics,
             k,
@@ -188,7 +186,7 @@ def diagnose_scan(diag, p: int, params, carry: SimCarry, ks, us, xs, ys, codes) 
             info.step.mean,
             x,
             info.step.health,
-            true_prob,
+            jnp.exp(lp),
         )
         return SimCarry(c.x, st, m), None
 

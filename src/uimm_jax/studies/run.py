@@ -33,7 +33,7 @@ import numpy as np
 
 from uimm_jax._checks import check_positive_int, check_seed
 from uimm_jax.engine import metrics
-from uimm_jax.engine.bank import FaultTable, fault_table, set_codes
+from uimm_jax.engine.bank import FaultTable, fault_table
 from uimm_jax.engine.scan import FILTER_OUTPUTS, filter_chunk, scan_chunked, truth_scan
 from uimm_jax.engine.truth import InputSignal, TruthPlan
 from uimm_jax.engine.uimm import Diagnoser, DiagParams, build_diagnoser, make_params
@@ -400,7 +400,9 @@ def _rates(N: int, runtime_s: float, chunk_timings: list | None) -> dict[str, An
     return {"steps_per_s": float(N / runtime_s) if runtime_s > 0 else None, "compile_s": None}
 
 
-def true_set_probabilities(setup: RunSetup, truth_codes, outputs: dict) -> np.ndarray:
+def true_set_probabilities(
+    setup: RunSetup, truth_codes, outputs: dict, *, chunk: int = 65_536
+) -> np.ndarray:
     """``(N,)`` mode probability the bank gave to the true fault set at each sample.
 
     The mode probabilities of step ``k`` refer to the bank of the declared set before
@@ -409,12 +411,17 @@ def true_set_probabilities(setup: RunSetup, truth_codes, outputs: dict) -> np.nd
     F = setup.table.num_faults
     declared = np.asarray(outputs["declared"]).astype(np.int64)
     before = np.concatenate([np.zeros(1, np.int64), declared[:-1]])
-    sets = ((before[None, :] >> np.arange(F)[:, None]) & 1).astype(bool)  # (F, N)
-    model_codes = set_codes(setup.diagnoser.model_sets(jnp.asarray(sets)))
-    probs = jnp.asarray(outputs["mode_probs"]).T  # (M, N)
-    return np.asarray(
-        metrics.true_set_probability(probs, model_codes, jnp.asarray(np.asarray(truth_codes)))
-    )
+    truth = np.asarray(truth_codes)
+    probs = np.asarray(outputs["mode_probs"])
+    out = np.zeros(truth.shape[0], probs.dtype)
+    for k in range(0, truth.shape[0], chunk):  # bounded memory for large banks
+        sl = slice(k, k + chunk)
+        sets = ((before[None, sl] >> np.arange(F)[:, None]) & 1).astype(bool)  # (F, L)
+        with np.errstate(divide="ignore"):
+            log_p = jnp.asarray(np.log(probs[sl].T))
+        lp = setup.diagnoser.true_set_log_prob(log_p, jnp.asarray(sets), truth[sl])
+        out[sl] = np.exp(np.asarray(lp))
+    return out
 
 
 def run_fdi_counts(setup: RunSetup, truth_codes, outputs: dict) -> metrics.FDICounts:
