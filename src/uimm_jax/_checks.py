@@ -347,8 +347,11 @@ def check_out_dir(path, name: str = "--out") -> Path:
     """Create the output directory ``path`` (and parents) now, before any long computation.
 
     Raises:
-        ValueError: ``path`` is an existing file, or the directory cannot be created.
+        ValueError: ``path`` is empty or an existing file, or the directory cannot be
+            created.
     """
+    if not str(path).strip():
+        raise ValueError(f"{name}: empty path; give a directory (created if missing), e.g. out")
     out = Path(path)
     if out.exists() and not out.is_dir():
         raise ValueError(f"{name}: {str(out)!r} is a file; give a directory (created if missing)")

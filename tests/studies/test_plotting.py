@@ -239,9 +239,35 @@ def test_plot_sweep(tmp_path):
             "median_delay_s": {"valve_wear": None},
         }
     )
-    fig = plots_sweep.plot_sweep(cells, title="sweep")
-    assert len(fig.axes) == 2
+    for c in cells:  # the per-method metrics of results.json cells
+        c.update(runs=10, false_declarations=1, isolation_accuracy=0.9, mode_accuracy=0.95)
+        c.update(tdr=0.97, far=0.001, fia=0.93, isolation_accuracy_ci=[0.8, 0.95])
+    fault_free = [{"method": "uimm", "runs": 10, "false_declarations": 0, "mode_accuracy": 1.0}]
+    fig = plots_sweep.plot_sweep(cells, fault_free=fault_free, title="sweep")
+    assert len(fig.axes) == 6
+    titles = " ".join(ax.get_title() for ax in fig.axes)
+    for word in ("Detection probability", "Isolation", "False declarations", "Mode accuracy"):
+        assert word in titles
+    # UIMM and IMM are told apart by marker and fill, and nudged apart on x.
+    lines = [ln for ln in fig.axes[0].get_lines() if len(ln.get_xdata()) == 3]
+    uimm = next(ln for ln in lines if ln.get_marker() == "o")
+    imm = next(ln for ln in lines if ln.get_marker() == "s")
+    assert uimm.get_markerfacecolor() != imm.get_markerfacecolor()
+    assert not np.allclose(np.asarray(uimm.get_xdata(), float), np.asarray(imm.get_xdata(), float))
     _saved(fig, tmp_path, "sweep")
+
+
+def test_plot_sweep_single_magnitude_is_a_dot_chart(tmp_path):
+    cells = [
+        {"method": m, "magnitude": 0.5, "detection_probability": {"a": 1.0, "b": 0.5},
+         "runs": 4, "false_declarations": 2, "isolation_accuracy": 0.25, "mode_accuracy": 0.3}
+        for m in ("uimm", "imm")
+    ]  # fmt: skip
+    fig = plots_sweep.plot_sweep(cells)
+    for ax in fig.axes:
+        assert [t.get_text() for t in ax.get_xticklabels()] == ["UIMM", "IMM"]
+        assert "magnitude 0.5" in ax.get_xlabel()
+    _saved(fig, tmp_path, "sweep_single")
 
 
 def test_plot_confusion(tmp_path):
@@ -251,6 +277,67 @@ def test_plot_confusion(tmp_path):
     texts = {text.get_text() for text in fig.axes[0].texts}
     assert {"50", "2", "0", "45"} <= texts
     _saved(fig, tmp_path, "confusion")
+
+
+def test_confusion_colours_are_row_shares(tmp_path):
+    m = np.array([[5000, 2], [3, 7]])  # a large fault-free row
+    fig = plots_sweep.plot_confusion(m, ["fault-free", "f"], ["f", "none"])
+    colours = fig.axes[0].images[0].get_array()
+    np.testing.assert_allclose(colours, m / m.sum(axis=1, keepdims=True))
+    texts = {text.get_text() for text in fig.axes[0].texts}
+    assert {"5000", "70 %", "30 %"} <= texts
+    grid = plots_sweep.plot_confusion_grid(
+        [("magnitude 0.5", m), ("magnitude 1", m)], ["a", "b"], ["c", "d"]
+    )
+    assert len(grid.axes) == 3  # two panels and the colour bar
+    _saved(grid, tmp_path, "confusion_grid")
+
+
+def test_mode_probabilities_detail_zooms_and_declared_sets(tmp_path):
+    from uimm_jax.studies import plots_run
+
+    t = (np.arange(100_000) + 1) * 1e-4
+    p = np.full((t.size, 3), 0.0)
+    p[:, 0] = 1.0
+    labels = ["D (no new fault)", "D + a", "D + b"]
+    decl = [(3.0391, "a"), (6.0206, "b")]
+    fig = plots_run.plot_mode_probabilities_detail(
+        t, p, labels, events=[(3.0, "a"), (6.0, "b")], declarations=decl,
+        declared_sets=plots_run.declared_set_labels(decl), delays={"a": 0.0391, "b": None},
+    )  # fmt: skip
+    main, z1, z2 = fig.axes
+    assert z1.get_xlim() == pytest.approx((2.5, 3.5), abs=2e-4)
+    assert "declared after 39.1 ms" in z1.get_title() and "not declared" in z2.get_title()
+    notes = [a.get_text() for a in main.texts]
+    assert "D = {a}" in notes and "D = {a, b}" in notes
+    assert plots_run.declared_set_labels([(1.0, "a"), (1.0, "b")]) == [(1.0, "D = {a, b}")]
+    _saved(fig, tmp_path, "mode_probabilities_detail")
+
+
+def test_plot_states_measured_data_shows_estimates_only(tmp_path):
+    t = np.linspace(0, 1, 500)
+    xe = np.stack([np.sin(t), np.cos(t)], axis=1)
+    fig = plots.plot_states(t, np.full_like(xe, np.nan), xe, ["x", "v"], units=["m", "m/s"])
+    assert len(fig.axes) == 2  # no error panels
+    assert [ln.get_label() for ln in fig.axes[0].get_lines()] == ["estimate"]
+    assert fig.axes[1].get_ylabel() == "v (m/s)"
+    _saved(fig, tmp_path, "states_measured")
+
+
+def test_plot_states_error_is_an_envelope(tmp_path):
+    rng = np.random.default_rng(1)
+    t = np.linspace(0, 100, 1_000_000)
+    x = np.sin(t)[:, None]
+    err = rng.normal(size=x.shape) * 1e-3
+    fig = plots.plot_states(t, x, x + err, ["x"], units=["m"])
+    ax_err = fig.axes[1]
+    (band,) = ax_err.collections
+    verts = band.get_paths()[0].vertices
+    assert len(verts) < 5000  # 1000 buckets, not 1e6 points
+    assert verts[:, 1].max() == pytest.approx(err.max()) and verts[:, 1].min() == pytest.approx(
+        err.min()
+    )
+    assert ax_err.get_ylabel() == "error (m)"
 
 
 def test_plot_loss_curve(tmp_path):

@@ -32,7 +32,18 @@ def register(sub) -> None:
         action="store_true",
         help="run the diagnoser in float32 on a scaled model (docs/robustness.md)",
     )
-    r.add_argument("--no-plots", action="store_true", help="write summary.json only")
+    r.add_argument(
+        "--csv",
+        nargs="?",
+        type=int,
+        const=0,
+        metavar="EVERY",
+        help="also write timeseries.csv: every EVERY-th sample (default: about 10,000 rows) "
+        "plus every sample where the declared or recognised set changes",
+    )
+    r.add_argument(
+        "--no-plots", action="store_true", help="write summary.json and timeseries.npz only"
+    )
     r.add_argument("--quiet", action="store_true", help="no progress output")
     r.set_defaults(func=_cmd_run)
 
@@ -61,7 +72,7 @@ class _Progress:
 def _write_figures(result, out: Path) -> list[str]:
     import numpy as np
 
-    from uimm_jax.studies import plots
+    from uimm_jax.studies import plots, plots_run
 
     sc = result.setup.scenario
     diag = result.setup.diagnoser
@@ -71,14 +82,18 @@ def _write_figures(result, out: Path) -> list[str]:
     events = [(e["time"], e["fault"]) for e in s["events"]]
     decl = [(d["time"], d["fault"]) for d in s["declarations"]]
     title = f"{sc.name} ({s['method'].upper()}, {s['num_models']} models)"
+    uimm = s["method"] == "uimm"
     figs = {
-        "mode_probabilities.png": plots.plot_mode_probabilities(
+        "mode_probabilities.png": plots_run.plot_mode_probabilities_detail(
             t,
             o["mode_probs"],
             diag.model_labels(),
             events=events,
             declarations=decl,
-            title=f"Mode probabilities - {title}",
+            declared_sets=plots_run.declared_set_labels(decl) if uimm else (),
+            delays=s["detection_delay_s"],
+            title=f"Mode probabilities - {title}"
+            + (": model 0 is D, the declared set" if uimm else ""),
         ),
         "mode_recognition.png": plots.plot_mode_recognition(
             t,
@@ -92,7 +107,12 @@ def _write_figures(result, out: Path) -> list[str]:
             result.truth["x"],
             o["mean"],
             list(sc.plant.state_names),
-            title=f"Estimated vs true states - {title}",
+            units=list(sc.plant.state_units) or None,
+            title=(
+                f"Estimated vs true states - {title}"
+                if np.isfinite(result.truth["x"]).any()
+                else f"Estimated states (measured data: true states unknown) - {title}"
+            ),
         ),
         "model_count.png": plots.plot_model_count(max(10, diag.num_faults)),
     }
@@ -106,11 +126,13 @@ def _write_figures(result, out: Path) -> list[str]:
 def _print_summary(s: dict) -> None:
     print(
         f"scenario      {s['scenario']}  ({s['method']}, {s['num_models']} models, "
-        f"{s['num_steps']} steps of {s['dt']:g} s)"
+        f"{s['num_steps']} steps of {s['dt']:g} s, {s['dtype']})"
     )
     for e in s["events"]:
         d = s["detection_delay_s"].get(e["fault"])
         verdict = f"declared after {d * 1e3:.1f} ms" if d is not None else "NOT declared"
+        if e["time"] >= s["duration_s"]:  # measured data that ends before the event
+            verdict = f"outside the data (it ends at {s['duration_s']:g} s)"
         print(f"  truth  {e['fault']:<22s} at {e['time']:8.3f} s -> {verdict}")
     for d in s["declarations"]:
         tag = "ok" if d["correct"] else "FALSE"
@@ -128,16 +150,21 @@ def _print_summary(s: dict) -> None:
 def _cmd_run(args) -> int:
     from uimm_jax._checks import check_out_dir, check_seed
     from uimm_jax.scenario.parse import load_scenario
+    from uimm_jax.studies.exports import write_timeseries, write_timeseries_csv
     from uimm_jax.studies.run import run_scenario
 
     check_seed(args.seed, "--seed")
+    if args.measurements is not None and not args.measurements.strip():
+        raise ValueError("--measurements: empty path; give a .csv, .npy or .npz file")
+    if args.csv is not None and args.csv < 0:
+        raise ValueError(f"--csv: expected a positive sample step (or none), got {args.csv}")
     sc = load_scenario(args.scenario)
     out = check_out_dir(args.out)  # before the run, not after it
     method = args.method or sc.filter.method
     if args.float32:  # scaled float32 diagnoser (uimm_jax.studies.float32, docs/robustness.md)
         from uimm_jax.studies.float32 import run_scenario_float32 as run_scenario
     measurements = None
-    if args.measurements:
+    if args.measurements is not None:
         from uimm_jax.scenario.measured import load_measurements
 
         measurements = load_measurements(args.measurements, sc)
@@ -154,7 +181,13 @@ def _cmd_run(args) -> int:
     summary = dict(result.summary)
     summary["wall_time_s"] = time.perf_counter() - t0
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    data = [write_timeseries(result, out / "timeseries.npz")]
+    if args.csv is not None:
+        data.append(write_timeseries_csv(result, out / "timeseries.csv", every=args.csv or None))
     figures = [] if args.no_plots else _write_figures(result, out)
     _print_summary(summary)
-    print(f"wrote {out / 'summary.json'}" + (f" and {len(figures)} figures" if figures else ""))
+    print(
+        f"wrote {out / 'summary.json'}, {', '.join(p.name for p in data)}"
+        + (f" and {len(figures)} figures" if figures else "")
+    )
     return 0

@@ -9,6 +9,7 @@ flags when the command runs.
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 
@@ -18,15 +19,17 @@ __all__ = ["register"]
 def _items(text: str) -> list[str]:
     items = [v.strip() for v in text.split(",")]
     if not all(items):
-        raise ValueError(f"empty item in {text!r}")
+        raise argparse.ArgumentTypeError(f"empty item in {text!r}")
     return items
 
 
 def _floats(text: str) -> list[float]:
     try:
         return [float(v) for v in _items(text)]
-    except ValueError as err:
-        raise ValueError(f"expected comma-separated numbers, got {text!r}") from err
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated numbers, got {text!r}"
+        ) from None
 
 
 def _methods(text: str) -> list[str]:
@@ -43,6 +46,12 @@ def register(subparsers) -> None:
     )
     s.add_argument("scenario", help="scenario TOML file, optionally with a [sweep] table")
     s.add_argument("--runs", type=int, help="runs per cell (overrides [sweep].runs)")
+    s.add_argument(
+        "--duration",
+        type=float,
+        help="length of each run in s (overrides the scenario's; event times and [sweep] "
+        "onsets scaled with it, as tune's --train-duration)",
+    )
     s.add_argument("--out", default="out/sweep", help="output directory (default: out/sweep)")
     s.add_argument(
         "--methods", type=_methods, help="comma-separated methods, e.g. uimm,imm (overrides)"
@@ -128,6 +137,10 @@ def _cmd_sweep(args) -> int:
         if value is not None:
             check_positive_int(value, flag, low)
     check_seed(args.seed, "--seed")
+    if args.host_devices is not None:
+        from uimm_jax.cli._args import MAX_HOST_DEVICES
+
+        check_positive_int(args.host_devices, "--host-devices", 1, MAX_HOST_DEVICES)
     if args.host_devices:
         _force_host_devices(args.host_devices)
     import jax
@@ -145,6 +158,10 @@ def _cmd_sweep(args) -> int:
     from uimm_jax.studies.sweep_outputs import write_sweep_outputs
 
     sc = load_scenario(args.scenario)
+    if args.duration is not None:
+        from uimm_jax.cli._args import with_duration
+
+        sc = with_duration(sc, args.duration, "--duration")
     out = check_out_dir(args.out)
     opts = dict(
         runs=args.runs,

@@ -87,7 +87,14 @@ def register(subparsers) -> None:
         help="decision temperature in logit units (default 0.5)",
     )
     t.add_argument(
-        "--eval-runs", type=int, default=200, help="held-out runs per case (default 200)"
+        "--eval-runs",
+        type=int,
+        default=200,
+        help="held-out runs per case (default 200). The default evaluation is long: 200 runs "
+        "x (each case + the fault-free case) at the scenario's length, for the settings before "
+        "and after -- for a paper scenario (1e6 samples) about 4e8 run-steps per setting, "
+        "8e8 in all, many minutes; shorten it with --eval-runs or --eval-duration, or skip "
+        "it with --no-eval",
     )
     t.add_argument("--eval-seed", type=int, help="held-out seed (default: the scenario's)")
     t.add_argument(
@@ -139,13 +146,7 @@ def _cmd_tune(args) -> int:
         warnings.simplefilter("ignore")
         sc = load_scenario(args.scenario)
         also = [load_scenario(p) for p in args.also]
-    if args.runs < 1 or args.iters < 1 or args.warmup < 0:
-        raise ValueError("--runs and --iters must be >= 1 and --warmup >= 0")
-    try:
-        w = tuple(float(v) for v in args.weights.split(","))
-        weights = tune.LossWeights(*w)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"--weights: expected three numbers ce,delay,false: {err}") from None
+    weights = tune.LossWeights(*_check_args(args, sc))
     train_seed = args.seed if args.seed is not None else int(sc.seed) + 1_000_003
     eval_seed = args.eval_seed if args.eval_seed is not None else int(sc.seed)
     if train_seed == eval_seed and not args.no_eval:
@@ -209,6 +210,56 @@ def _cmd_tune(args) -> int:
     return 0
 
 
+def _check_args(args, sc) -> tuple[float, ...]:
+    """Every flag checked before anything is trained; returns the loss weights.
+
+    Each error names its flag, as ``run`` and ``sweep`` do.
+    """
+    import math
+
+    from uimm_jax._checks import check_positive_finite, check_positive_int, check_seed
+    from uimm_jax.cli._args import check_out_file, check_weights, with_duration
+    from uimm_jax.studies.tune_params import LossWeights
+
+    for flag, value, low in (
+        ("--runs", args.runs, 1),
+        ("--iters", args.iters, 1),
+        ("--warmup", args.warmup, 0),
+        ("--fault-free-runs", args.fault_free_runs, 0),
+        ("--eval-runs", args.eval_runs, 1),
+    ):
+        check_positive_int(value, flag, low)
+    check_seed(args.seed, "--seed")
+    check_seed(args.eval_seed, "--eval-seed")
+    if not (math.isfinite(args.lr) and args.lr > 0):
+        raise ValueError(f"--lr: expected a finite learning rate > 0, got {args.lr!r}")
+    check_positive_finite(args.temperature, "--temperature")
+    weights = check_weights(args.weights, LossWeights._fields)
+    if args.train_duration is not None:
+        with_duration(sc, args.train_duration, "--train-duration")
+    if args.eval_duration is not None:
+        with_duration(sc, args.eval_duration, "--eval-duration")
+    if args.eval_only:
+        if not str(args.out).strip():
+            raise ValueError("--out: empty path; give the tuned .toml file to evaluate")
+    else:
+        check_out_file(args.out)
+    if args.before_from is not None and not Path(args.before_from).is_file():
+        raise ValueError(f"--before-from: {args.before_from!r} is not a file")
+    return weights
+
+
+def _tuned_header(args, sc, train_dur: float, runs: int, seed: int) -> str:
+    """Comment lines that say the file was tuned, from what and how."""
+    return (
+        f"# Tuned by uimm-jax tune (gradient descent on the [filter] settings, docs/tuning.md)\n"
+        f"# from {args.scenario} (scenario {sc.name!r}): {runs} training runs of "
+        f"{train_dur:g} s, seed {seed}, {args.iters} iterations, structure {args.structure}.\n"
+        f"# Command: {shlex.join(['uimm-jax', *sys.argv[1:]])}\n"
+        "# Only [filter] differs from the source scenario.\n"
+    )
+
+
 def _sha256(path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
@@ -236,7 +287,7 @@ def _train(args, sc, config, train_seed, log):
     import numpy as np
 
     from uimm_jax.scenario.parse import parse_scenario
-    from uimm_jax.scenario.write import dump_scenario
+    from uimm_jax.scenario.write import scenario_to_toml
     from uimm_jax.studies import plots, plots_sweep, tune
 
     train_dur = float(args.train_duration or sc.duration)
@@ -274,7 +325,8 @@ def _train(args, sc, config, train_seed, log):
     doc = tune.tuned_scenario(sc, settings)
     tuned_sc = parse_scenario(doc, source=str(args.out))
     out = Path(args.out)
-    dump_scenario(tuned_sc, out)
+    header = _tuned_header(args, sc, train_dur, sum(counts), train_seed)
+    out.write_text(header + scenario_to_toml(tuned_sc), encoding="utf-8")
     png = out.with_suffix(".loss.png")
     fig = plots_sweep.plot_loss_curve(
         res.history, title=f"Tuning loss: {sc.name} ({sum(counts)} runs of {train_dur:g} s)"

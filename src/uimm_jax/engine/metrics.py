@@ -22,6 +22,22 @@ On the device, :class:`RunMetrics` accumulates them in a scan carry
   period ``[0, first onset)`` it is the first fault declared in it, or ``none``.  An event
   is *isolated* when it lands on the diagonal (:func:`isolated`);
 * mode accuracy: the fraction of samples whose recognised fault set equals the truth;
+* the standard per-sample FDI rates (:class:`FDICounts`, :func:`fdi_terms`,
+  :func:`fdi_rates`), named as in the DX diagnostic competitions.  A sample is *faulty*
+  when its true fault set is non-empty and *flagged* when the diagnoser's declared set
+  after that sample is non-empty (the decision, not the instantaneous recognised mode):
+
+  - TDR, true detection rate: flagged faulty samples / faulty samples;
+  - FAR, false alarm rate: flagged fault-free samples / fault-free samples;
+  - FIA, fault isolation accuracy: the mean, over the *detected* samples (faulty and
+    flagged), of the mode probability the bank gives to the true fault set (the summed
+    probability of the models whose fault set equals the truth; 0 when no model has
+    it, e.g. a UIMM bank relative to a wrong declared set).
+
+  Over several runs the counts are pooled (ratios of sums over all samples); a rate
+  whose denominator is 0 is ``None``.  :func:`true_set_probability` is the definition
+  of FIA's per-sample term over any bank; the diagnosers compute it in one masked
+  maximum (``Diagnoser.true_set_log_prob``, tested equal to it);
 * health counts: samples (or runs) with each health bit (:data:`HEALTH_FLAGS`);
 * :func:`wilson_interval`: the Wilson score interval of a proportion.
 """
@@ -35,6 +51,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from uimm_jax.engine.bank import set_codes
 from uimm_jax.engine.imm import (
     HEALTH_COV_REPAIRED,
     HEALTH_GATED,
@@ -44,18 +61,23 @@ from uimm_jax.engine.imm import (
 
 __all__ = [
     "HEALTH_FLAGS",
+    "FDICounts",
     "RunMetrics",
     "confusion",
     "declaration_list",
     "delay_stats",
     "detected",
     "false_declared",
+    "fdi_rates",
+    "fdi_terms",
     "first_steps",
     "health_counts",
     "init_metrics",
     "isolated",
     "mode_accuracy",
     "new_declarations",
+    "sample_time",
+    "true_set_probability",
     "update_metrics",
     "wilson_interval",
 ]
@@ -74,6 +96,79 @@ HEALTH_FLAGS = {
 # --------------------------------------------------------------------------------------
 
 
+class FDICounts(NamedTuple):
+    """Sample counts behind TDR, FAR and FIA (module doc), per run or summed over steps.
+
+    Attributes:
+        faulty: samples whose true fault set is non-empty.
+        flagged_faulty: faulty samples with a non-empty declared set (detected samples).
+        flagged_free: fault-free samples with a non-empty declared set (false alarms).
+        true_prob: sum over the detected samples of the mode probability of the true set.
+    """
+
+    faulty: jax.Array
+    flagged_faulty: jax.Array
+    flagged_free: jax.Array
+    true_prob: jax.Array
+
+
+def fdi_terms(code, declared, true_prob) -> FDICounts:
+    """The :class:`FDICounts` terms of samples (one definition for runs and sweeps).
+
+    Args:
+        code: true fault-set codes (0: fault-free), any shape.
+        declared: declared-set codes after each sample, same shape.
+        true_prob: mode probability given to the true fault set
+            (:func:`true_set_probability`), same shape.
+
+    Returns:
+        Per-sample :class:`FDICounts` (int32 indicators and the float probability term).
+    """
+    faulty = code != 0
+    flagged = declared != 0
+    detected = faulty & flagged
+    return FDICounts(
+        faulty=faulty.astype(jnp.int32),
+        flagged_faulty=detected.astype(jnp.int32),
+        flagged_free=(~faulty & flagged).astype(jnp.int32),
+        true_prob=jnp.where(detected, true_prob, 0.0),
+    )
+
+
+def true_set_probability(mode_probs, model_codes, code):
+    """Mode probability of the true fault set: ``sum_m mu_m [set(m) == truth]``.
+
+    Args:
+        mode_probs: ``(M, *runs)`` mode probabilities.
+        model_codes: ``(M, *runs)`` or ``(M,)`` fault-set code of each model.
+        code: ``(*runs,)`` true fault-set code.
+    """
+    model_codes = jnp.reshape(
+        model_codes, model_codes.shape + (1,) * (mode_probs.ndim - model_codes.ndim)
+    )
+    return jnp.sum(jnp.where(model_codes == code, mode_probs, 0.0), axis=0)
+
+
+def fdi_rates(counts: FDICounts, samples: int) -> dict[str, float | None]:
+    """TDR, FAR and FIA (module doc) of summed counts over ``samples`` samples.
+
+    Args:
+        counts: :class:`FDICounts` summed over the samples (and runs) to pool.
+        samples: how many samples the counts cover (faulty + fault-free).
+
+    Returns:
+        ``{"tdr", "far", "fia"}``; ``None`` where the denominator is 0.
+    """
+    faulty = int(np.sum(counts.faulty))
+    detected = int(np.sum(counts.flagged_faulty))
+    free = int(samples) - faulty
+    return {
+        "tdr": detected / faulty if faulty else None,
+        "far": int(np.sum(counts.flagged_free)) / free if free else None,
+        "fia": float(np.sum(counts.true_prob)) / detected if detected else None,
+    }
+
+
 class RunMetrics(NamedTuple):
     """Per-run metrics accumulated in a scan carry (batch ``B``).
 
@@ -83,12 +178,14 @@ class RunMetrics(NamedTuple):
         correct: ``(B,)`` int32 samples whose recognised fault set equals the truth.
         sq_err: ``(n, B)`` sum over steps of the squared combined-estimate error.
         health: ``(B,)`` int32 OR of the per-step health flags.
+        fdi: :class:`FDICounts` of each run, ``(B,)`` leaves (TDR, FAR, FIA).
     """
 
     decl_step: jax.Array
     correct: jax.Array
     sq_err: jax.Array
     health: jax.Array
+    fdi: FDICounts
 
 
 def init_metrics(runs: int, num_faults: int, state_dim: int, dtype) -> RunMetrics:
@@ -98,6 +195,9 @@ def init_metrics(runs: int, num_faults: int, state_dim: int, dtype) -> RunMetric
         correct=jnp.zeros((runs,), jnp.int32),
         sq_err=jnp.zeros((state_dim, runs), dtype),
         health=jnp.zeros((runs,), jnp.int32),
+        fdi=FDICounts(
+            *(jnp.zeros((runs,), jnp.int32) for _ in range(3)), jnp.zeros((runs,), dtype)
+        ),
     )
 
 
@@ -114,7 +214,7 @@ def new_declarations(decl_step: jax.Array, before: jax.Array, after: jax.Array, 
 
 
 def update_metrics(
-    m: RunMetrics, k, before, after, recognised, code, mean, x, health
+    m: RunMetrics, k, before, after, recognised, code, mean, x, health, true_prob
 ) -> RunMetrics:
     """One step of the :class:`RunMetrics` accumulators.
 
@@ -128,13 +228,17 @@ def update_metrics(
         mean: ``(n, B)`` combined estimate; ``x``: the true state.
         x: see ``mean``.
         health: ``(B,)`` health bits of the step.
+        true_prob: ``(B,)`` mode probability of the true fault set
+            (:func:`true_set_probability`).
     """
     err = mean - x
+    terms = fdi_terms(code, set_codes(after), true_prob)
     return RunMetrics(
         decl_step=new_declarations(m.decl_step, before, after, k),
         correct=m.correct + (recognised == code).astype(jnp.int32),
         sq_err=m.sq_err + err * err,
         health=m.health | health,
+        fdi=FDICounts(*(a + t.astype(a.dtype) for a, t in zip(m.fdi, terms, strict=True))),
     )
 
 
@@ -166,7 +270,17 @@ def declaration_list(decl, names, dt: float) -> list[dict]:
     """
     decl = np.asarray(decl)
     order = sorted((int(k), j) for j, k in enumerate(decl) if k >= 0)
-    return [{"fault": names[j], "time": float((k + 1) * dt), "step": k} for k, j in order]
+    return [{"fault": names[j], "time": sample_time(k + 1, dt), "step": k} for k, j in order]
+
+
+def sample_time(steps, dt: float) -> float:
+    """``steps * dt`` rounded to the sample grid (``60.0207``, not ``60.020700000000005``).
+
+    The product is rounded to ``6 - floor(log10(dt))`` decimals, which removes the
+    floating-point noise of the product and keeps every digit a sample time can have.
+    """
+    digits = max(0, 6 - math.floor(math.log10(dt))) if dt > 0 else 12
+    return round(float(steps) * float(dt), digits)
 
 
 def detected(onset, decl) -> np.ndarray:

@@ -194,6 +194,8 @@ def diagnose_scan(diag, p: int, params, carry: SimCarry, ks, us, xs, ys, codes) 
         k, u, x, y, code = inp
         u = jnp.full((p,) + x.shape[1:], u, x.dtype)
         st, info = diag.step(c.diag, params, u, y, with_cov=False)
+        # The bank the mode probabilities refer to: the declared set before the step.
+        lp = diag.true_set_log_prob(info.step.log_mode_probs, c.diag.declared, code)
         m = update_metrics(
             c.metrics,
             k,
@@ -204,6 +206,7 @@ def diagnose_scan(diag, p: int, params, carry: SimCarry, ks, us, xs, ys, codes) 
             info.step.mean,
             x,
             info.step.health,
+            jnp.exp(lp),
         )
         return SimCarry(c.x, st, m), None
 

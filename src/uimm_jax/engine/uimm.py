@@ -147,6 +147,21 @@ class Diagnoser(abc.ABC):
         """Human labels of the model slots."""
 
     @abc.abstractmethod
+    def true_set_log_prob(self, log_mode_probs, declared, code) -> jax.Array:
+        """Log mode probability of the fault set ``code`` (``-inf`` if no model holds it).
+
+        The per-step term of FIA (:mod:`uimm_jax.engine.metrics`): the same as
+        :func:`uimm_jax.engine.metrics.true_set_probability` over :meth:`model_sets`, but
+        one gather and no sum over the bank.
+
+        Args:
+            log_mode_probs: ``(M, *runs)`` log mode probabilities of the bank of
+                ``declared``.
+            declared: ``(F, *runs)`` declared set the bank was built for.
+            code: ``(*runs,)`` fault-set code (bit j = fault j).
+        """
+
+    @abc.abstractmethod
     def _active(self, declared: jax.Array) -> jax.Array | None:
         """``(M, *runs)`` models that may carry probability, or ``None`` for all."""
 
@@ -269,6 +284,17 @@ class UIMMDiagnoser(Diagnoser):
         """Slots are relative to the declared set ``D``."""
         return ["D (no new fault)"] + [f"D + {n}" for n in self.table.names]
 
+    def true_set_log_prob(self, log_mode_probs, declared, code):
+        """Model 0 if ``code == D``, model ``j + 1`` if ``code == D + {j}``, else none."""
+        d = set_codes(declared)
+        code = jnp.asarray(code, jnp.int32)
+        new = code & ~d  # faults of the set that are not declared
+        one_new = (code ^ d == new) & (new != 0) & ((new & (new - 1)) == 0)
+        bits = np.arange(self.num_faults, dtype=np.int32).reshape((-1,) + (1,) * new.ndim)
+        j = jnp.sum(jnp.where((new >> bits) & 1 > 0, bits, 0), axis=0)
+        model = jnp.where(code == d, 0, jnp.where(one_new, j + 1, -1))
+        return _pick_model(log_mode_probs, model)
+
     def _active(self, declared):
         # A declared fault's hypothesis slot equals model 0 and carries no probability.
         return jnp.concatenate([jnp.ones((1,) + declared.shape[1:], bool), ~declared], 0)
@@ -335,12 +361,27 @@ class IMMDiagnoser(Diagnoser):
             for s in combinatorial_sets(self.num_faults).T
         ]
 
+    def true_set_log_prob(self, log_mode_probs, declared, code):
+        """Model ``s`` holds the fault set of code ``s``."""
+        del declared
+        return _pick_model(log_mode_probs, jnp.asarray(code, jnp.int32))
+
     def _active(self, declared):
         return None
 
     def _candidate_set(self, cand, declared):
         bits = np.arange(self.num_faults).reshape((-1,) + (1,) * cand.ndim)
         return ((cand >> bits) & 1).astype(bool)
+
+
+def _pick_model(log_mode_probs, model):
+    """``log_mode_probs[model]`` per run (``-inf`` where ``model < 0``).
+
+    A masked maximum over the model axis, not a gather: elementwise work that XLA CPU
+    vectorises along the run axis.
+    """
+    models = np.arange(log_mode_probs.shape[0]).reshape((-1,) + (1,) * model.ndim)
+    return jnp.max(jnp.where(models == model[None], log_mode_probs, -jnp.inf), axis=0)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 2))

@@ -61,9 +61,16 @@ class _PlantBase:
     # Parameters that are physically > 0 (masses, areas, volumes, moduli): scenario files
     # and fault magnitudes that would make one of them <= 0 are refused.
     positive_params: tuple[str, ...] = ()
+    # Unit of each state for figures and exports ("m", "m/s", "Pa"); () for none.
+    state_units: tuple[str, ...] = ()
 
     def __post_init__(self):
         check_plant_structure(self)
+        if self.state_units and len(self.state_units) != len(self.state_names):
+            raise ValueError(
+                f"plant {self.name!r}: state_units has {len(self.state_units)} entries for "
+                f"{len(self.state_names)} states; give one unit per state (or none)"
+            )
         if len(self.param_names) != len(self.nominal_values):
             raise ValueError(
                 f"plant {self.name!r}: param_names has {len(self.param_names)} entries but "

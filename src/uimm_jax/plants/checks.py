@@ -45,6 +45,12 @@ def check_plant_structure(plant) -> None:
             raise ValueError(
                 f"plant {plant.name!r}: nominal value of {pname!r} is {v}; it must be finite"
             )
+    _check_names(
+        [f.name for f in tuple(plant.faults) + tuple(plant.extra_faults)],
+        "fault names (faults and extra_faults together)",
+        plant.name,
+        allow_empty=True,
+    )
     for fault in tuple(plant.faults) + tuple(plant.extra_faults):
         for pname, v in dict(fault.values).items():
             if isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating):

@@ -102,6 +102,7 @@ def _matrices(p):
 HYDRAULIC_ACTUATOR = LinearPlant(
     name="hydraulic_actuator",
     state_names=("x_p", "v_p", "p_h"),
+    state_units=("m", "m/s", "Pa"),
     input_names=("i_v",),
     output_names=("x_p", "v_p", "p_h"),
     param_names=tuple(_PARAMS),

@@ -35,6 +35,7 @@ from uimm_jax.errors import ScenarioError, UIMMWarning
 from uimm_jax.plants.base import Plant
 from uimm_jax.plants.registry import get_plant, list_plants
 from uimm_jax.scenario._fields import FieldChecker, plain, suggest, toml_key
+from uimm_jax.scenario._plant import import_module_of
 from uimm_jax.scenario.spec import (
     DEFAULT_INITIAL_COV,
     INPUT_KINDS,
@@ -146,7 +147,7 @@ _TOP_KEYS = (
     "filter",
     "sweep",
 )
-_PLANT_KEYS = ("model", "params")
+_PLANT_KEYS = ("model", "params", "module")
 _INPUT_KEYS = ("kind", "amplitude", "frequency", "offset", "step_time")
 _NOISE_KEYS = ("process", "measurement")
 _EVENT_KEYS = ("time", "fault", "magnitude")
@@ -168,6 +169,7 @@ _HINTS = {
     "dt": "the sample time in seconds, e.g. dt = 1.0e-4",
     "plant": '[plant] with model = "hydraulic_actuator" (a registered plant name)',
     "model": 'a registered plant name, e.g. model = "hydraulic_actuator"',
+    "module": 'a Python file next to the scenario or an importable module, e.g. "my_plants"',
     "input": '[input] with kind = "sine" and amplitude = 0.01',
     "kind": f"one of {', '.join(INPUT_KINDS)}",
     "amplitude": "the signal amplitude in input units, e.g. amplitude = 0.01",
@@ -216,6 +218,7 @@ class _Parser(FieldChecker):
             )
         seed = self.integer(top.get("seed", 0), "seed", low=0, high=MAX_SEED)
 
+        plant_module = import_module_of(self, top["plant"])
         plant, plant_params = self.parse_plant(top["plant"])
         nominal = {k: float(v) for k, v in plant.nominal.items()}
         nominal.update(plant_params)
@@ -245,6 +248,7 @@ class _Parser(FieldChecker):
             filter=filter_spec,
             sweep=sweep,
             source=self.source,
+            plant_module=plant_module,
         )
         return scenario, self.notes
 
@@ -254,12 +258,15 @@ class _Parser(FieldChecker):
         model = self.string(table["model"], "[plant].model")
         try:
             plant = get_plant(model)
-        except ValueError:
+        except ValueError as exc:
             known = list_plants()
+            if model in known:  # an installed entry point that fails to load
+                self.fail("[plant].model", f"{exc}.")
             self.fail(
                 "[plant].model",
                 f"unknown plant model {model!r}.{suggest(model, known)} Registered models: "
-                f"{', '.join(known)} (register your own with uimm_jax.register_plant()).",
+                f"{', '.join(known)} (register your own with uimm_jax.register_plant(), "
+                '[plant] module = "my_plants" or the entry-point group "uimm_jax.plants").',
             )
         params: dict[str, float] = {}
         if "params" in table:

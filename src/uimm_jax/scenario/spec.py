@@ -193,6 +193,8 @@ class Scenario:
         filter: the filter-bank settings.
         sweep: the raw ``[sweep]`` table (validated by the module that uses it), or ``None``.
         source: where the scenario came from (a file name or ``"<dict>"``).
+        plant_module: ``[plant].module`` resolved: the absolute path of the ``.py`` file
+            or the module name imported before the plant was looked up, or ``None``.
     """
 
     name: str
@@ -209,6 +211,7 @@ class Scenario:
     filter: FilterSpec
     sweep: dict[str, Any] | None = None
     source: str = "<dict>"
+    plant_module: str | None = None
 
     @property
     def num_steps(self) -> int:

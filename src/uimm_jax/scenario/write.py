@@ -53,6 +53,8 @@ def scenario_to_dict(scenario: Scenario) -> dict[str, Any]:
         "seed": int(scenario.seed),
     }
     plant: dict[str, Any] = {"model": scenario.plant.name}
+    if scenario.plant_module:
+        plant["module"] = scenario.plant_module
     if scenario.plant_params:
         plant["params"] = {k: float(v) for k, v in scenario.plant_params.items()}
     out["plant"] = plant

@@ -30,6 +30,7 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import LogLocator, NullFormatter, ScalarFormatter
 
 __all__ = [
+    "draw_mode_probabilities",
     "fault_set_name",
     "plot_mode_probabilities",
     "plot_mode_recognition",
@@ -120,6 +121,23 @@ def _decimate(
     return tuple(out)
 
 
+def _band(t: np.ndarray, y: np.ndarray, buckets: int) -> tuple[np.ndarray, ...]:
+    """``(t_mid, lo, hi, rms)``: min/max envelope and RMS of ``y`` over time buckets.
+
+    With fewer samples than buckets, ``lo = hi = y`` and ``rms = |y|`` (exact).
+    """
+    t, y = np.asarray(t), np.asarray(y, float)
+    n = t.shape[0]
+    if n <= buckets:
+        return t, y, y, np.abs(y)
+    size = math.ceil(n / buckets)
+    nb = math.ceil(n / size)
+    yp = np.concatenate([y, np.repeat(y[-1:], nb * size - n)]).reshape(nb, size)
+    mid = np.minimum(np.arange(nb) * size + size // 2, n - 1)
+    rms = np.sqrt(np.mean(yp * yp, axis=1))
+    return t[mid], yp.min(axis=1), yp.max(axis=1), rms
+
+
 def fault_set_name(code: int, fault_names: Sequence[str]) -> str:
     """Name the fault set encoded by a bitmask.
 
@@ -207,19 +225,39 @@ def plot_mode_probabilities(
     m = mode_probs.shape[1]
     if len(model_labels) != m:
         raise ValueError(f"{len(model_labels)} model labels for {m} models")
-    colour = {label: _CYCLE[j % len(_CYCLE)] for j, label in enumerate(model_labels)}
-
-    td, pd = _decimate(t, np.asarray(mode_probs, dtype=float), max_points=max_points)
     fig = Figure(figsize=(9.0, 4.2), layout="constrained")
     ax = fig.add_subplot()
+    draw_mode_probabilities(
+        ax, t, mode_probs, model_labels, events=events, declarations=declarations,
+        max_points=max_points,
+    )  # fmt: skip
+    ax.set_title(title if title is not None else "Mode probabilities (cf. paper Figs. 6/8)")
+    return fig
+
+
+def draw_mode_probabilities(
+    ax, t, mode_probs, model_labels, *, events=(), declarations=(), max_points=_MAX_POINTS
+) -> None:
+    """Draw :func:`plot_mode_probabilities` into ``ax`` (also used by the zoom panels).
+
+    Onsets are dashed vertical lines, declarations solid lines topped by a triangle, in
+    the colour of the model named after the fault (or black).  Markers outside the time
+    range of ``t`` are left out.
+    """
+    colour = {label: _CYCLE[j % len(_CYCLE)] for j, label in enumerate(model_labels)}
+    for label, c in list(colour.items()):  # a UIMM hypothesis "D + f" lends f its colour
+        if label.startswith("D + "):
+            colour.setdefault(label[4:], c)
+    td, pd = _decimate(t, np.asarray(mode_probs, dtype=float), max_points=max_points)
     for j, label in enumerate(model_labels):
         ax.plot(td, pd[:, j], color=colour[label], lw=1.1, label=str(label))
 
     # Markers far outside the data (a short measured file against the scenario's onsets)
     # would stretch the axis, or overflow the text rasteriser: draw only those in range.
+    start = float(t[0]) if len(t) else 0.0
     end = float(t[-1]) if len(t) else 0.0
-    events = [(time, name) for time, name in events if time <= end]
-    declarations = [(time, name) for time, name in declarations if time <= end]
+    events = [(time, name) for time, name in events if start <= time <= end]
+    declarations = [(time, name) for time, name in declarations if start <= time <= end]
     for time, name in events:
         ax.axvline(time, color=colour.get(name, "k"), ls="--", lw=1.2, alpha=0.9)
         ax.annotate(
@@ -254,8 +292,6 @@ def plot_mode_probabilities(
     ax.set_xlabel("time (s)")
     ax.set_ylabel("mode probability")
     ax.grid(True, alpha=0.3)
-    ax.set_title(title if title is not None else "Mode probabilities (cf. paper Figs. 6/8)")
-    return fig
 
 
 def plot_mode_recognition(
@@ -376,7 +412,10 @@ def plot_states(
     The paper shows no state figure; this one checks the combined estimate of the bank
     (paper eq. 30) against the simulated truth. Each state gets a main panel and, when
     ``residuals`` is true, a small panel below it with the estimation error
-    ``x_est - x_true``.
+    ``x_est - x_true`` drawn as its min/max envelope and its ±RMS per time bucket (1000
+    buckets: a band and two lines, not a zig-zag through 1e6 points). Where ``x_true``
+    is all NaN (measured data), only the estimates are
+    drawn, without error panels.
 
     Args:
         t: Time stamps in seconds, shape (N,).
@@ -403,7 +442,9 @@ def plot_states(
     if units is not None and len(units) != s:
         raise ValueError(f"{len(units)} units for {s} states")
 
-    td, xt, xe, err = _decimate(t, x_true, x_est, x_est - x_true, max_points=max_points)
+    have_truth = bool(np.isfinite(x_true).any())  # measured data: no true states
+    residuals = residuals and have_truth
+    td, xt, xe = _decimate(t, x_true, x_est, max_points=max_points)
     rows_per_state = 2 if residuals else 1
     ratios = [3, 1] * s if residuals else [1] * s
     fig = Figure(figsize=(9.0, (2.6 if residuals else 2.0) * s + 0.6), layout="constrained")
@@ -414,8 +455,9 @@ def plot_states(
         unit = f" ({units[k]})" if units is not None and units[k] else ""
         ax = fig.add_subplot(gs[rows_per_state * k], sharex=first)
         first = first or ax
-        ax.plot(td, xt[:, k], color="k", lw=1.4, label="true")
-        ax.plot(td, xe[:, k], color="C1", lw=1.0, ls="--", label="estimate")
+        if have_truth:
+            ax.plot(td, xt[:, k], color="k", lw=1.4, label="true")
+        ax.plot(td, xe[:, k], color="C1", lw=1.0, ls="--" if have_truth else "-", label="estimate")
         ax.set_ylabel(f"{state_names[k]}{unit}")
         ax.grid(True, alpha=0.3)
         if k == 0:
@@ -423,9 +465,14 @@ def plot_states(
         axes.append(ax)
         if residuals:
             axr = fig.add_subplot(gs[rows_per_state * k + 1], sharex=first)
-            axr.plot(td, err[:, k], color="C3", lw=0.8)
-            axr.axhline(0.0, color="0.5", lw=0.6)
-            axr.set_ylabel("error", fontsize=8)
+            tb, lo, hi, rms = _band(t, x_est[:, k] - x_true[:, k], 1000)
+            axr.fill_between(tb, lo, hi, color="C3", alpha=0.25, lw=0, label="min/max")
+            axr.plot(tb, rms, color="C3", lw=0.9, label="RMS")
+            axr.plot(tb, -rms, color="C3", lw=0.9)
+            axr.axhline(0.0, color="0.3", lw=0.6)
+            if k == 0:
+                axr.legend(loc="upper right", fontsize=7, ncols=2)
+            axr.set_ylabel(f"error{unit}", fontsize=8)
             axr.tick_params(labelsize=8)
             axr.grid(True, alpha=0.3)
             axes.append(axr)

@@ -48,10 +48,12 @@ __all__ = [
     "RunSetup",
     "execute_run",
     "filter_measurements",
+    "run_fdi_counts",
     "run_scenario",
     "setup_scenario",
     "simulate_scenario",
     "summarize",
+    "true_set_probabilities",
 ]
 
 DEFAULT_CHUNK = 100_000
@@ -398,6 +400,40 @@ def _rates(N: int, runtime_s: float, chunk_timings: list | None) -> dict[str, An
     return {"steps_per_s": float(N / runtime_s) if runtime_s > 0 else None, "compile_s": None}
 
 
+def true_set_probabilities(
+    setup: RunSetup, truth_codes, outputs: dict, *, chunk: int = 65_536
+) -> np.ndarray:
+    """``(N,)`` mode probability the bank gave to the true fault set at each sample.
+
+    The mode probabilities of step ``k`` refer to the bank of the declared set before
+    that step (for UIMM, ``[D, D+f1, ...]`` with ``D`` declared up to step ``k - 1``).
+    """
+    F = setup.table.num_faults
+    declared = np.asarray(outputs["declared"]).astype(np.int64)
+    before = np.concatenate([np.zeros(1, np.int64), declared[:-1]])
+    truth = np.asarray(truth_codes)
+    probs = np.asarray(outputs["mode_probs"])
+    out = np.zeros(truth.shape[0], probs.dtype)
+    for k in range(0, truth.shape[0], chunk):  # bounded memory for large banks
+        sl = slice(k, k + chunk)
+        sets = ((before[None, sl] >> np.arange(F)[:, None]) & 1).astype(bool)  # (F, L)
+        with np.errstate(divide="ignore"):
+            log_p = jnp.asarray(np.log(probs[sl].T))
+        lp = setup.diagnoser.true_set_log_prob(log_p, jnp.asarray(sets), truth[sl])
+        out[sl] = np.exp(np.asarray(lp))
+    return out
+
+
+def run_fdi_counts(setup: RunSetup, truth_codes, outputs: dict) -> metrics.FDICounts:
+    """The :class:`~uimm_jax.engine.metrics.FDICounts` of one run, summed over its samples."""
+    terms = metrics.fdi_terms(
+        jnp.asarray(np.asarray(truth_codes)),
+        jnp.asarray(np.asarray(outputs["declared"])),
+        jnp.asarray(true_set_probabilities(setup, truth_codes, outputs)),
+    )
+    return metrics.FDICounts(*(np.sum(np.asarray(t)) for t in terms))
+
+
 def summarize(
     setup: RunSetup,
     truth_codes: np.ndarray,
@@ -414,7 +450,9 @@ def summarize(
     step k, otherwise it is a *false declaration*.  ``detection_delay_s[f]`` is the time
     from the event of f to its first correct declaration (``None`` if never declared).
     ``mode_accuracy`` is the fraction of samples whose recognised fault set equals the true
-    one.  With ``chunk_timings`` (``(steps, seconds)`` per chunk), ``steps_per_s`` is the
+    one.  ``tdr``, ``far`` and ``fia`` are the standard per-sample FDI rates of
+    :mod:`uimm_jax.engine.metrics` (:func:`run_fdi_counts`).  With ``chunk_timings``
+    (``(steps, seconds)`` per chunk), ``steps_per_s`` is the
     steady-state rate of the chunks after the first and ``compile_s`` estimates the
     compilation time (first chunk minus its steady-state share).
     """
@@ -435,9 +473,10 @@ def summarize(
     delays = {}
     for ev, k_ev in zip(sc.events, setup.event_steps, strict=True):
         j = names.index(ev.fault)
-        delays[ev.fault] = float((decl_step[j] - k_ev) * dt) if found[j] else None
+        delays[ev.fault] = metrics.sample_time(decl_step[j] - k_ev, dt) if found[j] else None
     correct = np.sum(np.asarray(outputs["recognised"]) == truth_codes)
     health = metrics.health_counts(outputs["health"])
+    fdi = metrics.fdi_rates(run_fdi_counts(setup, truth_codes, outputs), N)
     return {
         "scenario": sc.name,
         "source": sc.source,
@@ -461,6 +500,7 @@ def summarize(
         "false_declarations": len(false),
         "false_declaration_list": false,
         "mode_accuracy": metrics.mode_accuracy(correct, N),
+        **fdi,
         "transition": setup.transition.tolist(),
         "initial_mode_probs": setup.initial_mode_probs.tolist(),
         "threshold": float(sc.filter.decision.threshold),

@@ -50,6 +50,7 @@ import functools
 import numbers
 import sys
 import time
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -57,9 +58,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from uimm_jax.engine import metrics
 from uimm_jax.engine.metrics import RunMetrics, init_metrics
 from uimm_jax.engine.scan import SimCarry, scan_chunked, simulate_diagnose
 from uimm_jax.engine.truth import TruthPlan, run_keys
+from uimm_jax.errors import UIMMWarning
 from uimm_jax.scenario.sweep import FAULT_FREE, CaseSpec, SweepSpec, sweep_spec
 from uimm_jax.studies.run import RunSetup, setup_scenario
 from uimm_jax.studies.sweep_outputs import Cell, SweepResult, cell_summary
@@ -412,6 +415,7 @@ def run_sweep(
     correct = np.zeros((C, R), np.int64)
     sq_err = np.zeros((C, R, n))
     health = np.zeros((C, R), np.int32)
+    fdi = metrics.FDICounts(*(np.zeros((C, R), t) for t in (np.int64,) * 3 + (np.float64,)))
 
     # Batches: as few as ``batch`` allows, of equal sizes, a multiple of LANES per device.
     jobs_per_method = R * (C // len(spec.methods))
@@ -429,7 +433,11 @@ def run_sweep(
     t_start = time.perf_counter()
     done_steps = 0
     for method in spec.methods:
-        setup = setup_scenario(scenario, method, dtype=dtype)
+        with warnings.catch_warnings():
+            # A sweep over methods adapts the filter settings written for the scenario's
+            # own method on purpose (docs/montecarlo.md, "Cells"): no warning per method.
+            warnings.filterwarnings("ignore", r"\[filter\]\.\w+ is written for", UIMMWarning)
+            setup = setup_scenario(scenario, method, dtype=dtype)
         jobs = [(c.index, r, c.noise_scale) for c in cells if c.method == method for r in range(R)]
         for b in range(nb):
             part = jobs[b * B : (b + 1) * B]
@@ -450,6 +458,8 @@ def run_sweep(
             correct[c, r] = m.correct[:real]
             sq_err[c, r] = m.sq_err[:, :real].T
             health[c, r] = m.health[:real]
+            for acc, got in zip(fdi, m.fdi, strict=True):
+                acc[c, r] = got[:real]
     if report is not None and done_steps < total:
         report("done", total)
     result = SweepResult(
@@ -466,6 +476,8 @@ def run_sweep(
         correct_samples=correct,
         sq_err=sq_err,
         health=health,
+        fdi=fdi,
+        noise_keys=noise_keys,
         runtime_s=time.perf_counter() - t_start,
         devices=nd,
         batch=B,

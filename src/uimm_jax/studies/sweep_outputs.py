@@ -27,6 +27,9 @@ writes them.
   ``isolation_accuracy`` is the diagonal's share of the fault events (Wilson interval);
 * ``mode_accuracy``: fraction of all samples of the cell whose recognised fault set equals
   the true one;
+* ``tdr``, ``far``, ``fia``: the standard per-sample FDI rates (true detection rate,
+  false alarm rate, fault isolation accuracy) pooled over the cell's samples, as defined
+  in :mod:`uimm_jax.engine.metrics`;
 * ``state_rmse``: root mean square of the combined estimate's error, per state.
 """
 
@@ -42,7 +45,8 @@ from typing import NamedTuple
 import numpy as np
 
 from uimm_jax.engine import metrics
-from uimm_jax.scenario.sweep import SweepSpec
+from uimm_jax.scenario.sweep import FAULT_FREE, SweepSpec
+from uimm_jax.studies.exports import write_runs_csv
 
 __all__ = ["Cell", "SweepResult", "cell_summary", "write_sweep_outputs"]
 
@@ -85,6 +89,9 @@ class SweepResult:
         correct_samples: ``(C, R)`` samples with the correct recognised fault set.
         sq_err: ``(C, R, n)`` summed squared state errors.
         health: ``(C, R)`` OR of the health flags.
+        fdi: :class:`~uimm_jax.engine.metrics.FDICounts` of ``(C, R)`` arrays (TDR, FAR,
+            FIA), or ``None``.
+        noise_keys: ``(R, 2)`` uint32 noise key of each run, or ``None``.
         summaries: one dict per cell (:func:`cell_summary`).
         runtime_s: wall time of the simulations (compilation included).
         devices: number of devices the run axis was sharded over.
@@ -105,6 +112,8 @@ class SweepResult:
     correct_samples: np.ndarray
     sq_err: np.ndarray
     health: np.ndarray
+    fdi: metrics.FDICounts | None = None
+    noise_keys: np.ndarray | None = None
     summaries: list[dict] = dataclasses.field(default_factory=list)
     runtime_s: float = 0.0
     devices: int = 1
@@ -200,6 +209,9 @@ def cell_summary(result: SweepResult, index: int) -> dict:
     sq = result.sq_err[index]  # (R, n)
     rmse = np.sqrt(sq.sum(axis=0) / (R * N))
     health = metrics.health_counts(result.health[index])
+    fdi = {"tdr": None, "far": None, "fia": None}
+    if result.fdi is not None:
+        fdi = metrics.fdi_rates(metrics.FDICounts(*(a[index] for a in result.fdi)), R * N)
     return {
         "method": cell.method,
         "case": cell.case,
@@ -233,6 +245,7 @@ def cell_summary(result: SweepResult, index: int) -> dict:
         },
         "mode_accuracy": metrics.mode_accuracy(result.correct_samples[index], R * N),
         "mode_accuracy_min_run": metrics.mode_accuracy(result.correct_samples[index].min(), N),
+        **fdi,
         "state_rmse": {s: float(v) for s, v in zip(result.states, rmse, strict=True)},
         "health": {f"runs_{name}": health[name] for name in _RUN_HEALTH},
     }
@@ -261,6 +274,9 @@ def _csv_rows(result: SweepResult) -> tuple[list[str], list[list]]:
         "false_alarm_rate_per_hour",
         "isolation_accuracy",
         "mode_accuracy",
+        "tdr",
+        "far",
+        "fia",
     ] + [f"rmse:{s}" for s in result.states]
     rows = []
     for s in result.summaries:
@@ -286,6 +302,9 @@ def _csv_rows(result: SweepResult) -> tuple[list[str], list[list]]:
             s["false_alarm_rate_per_hour"],
             s["isolation_accuracy"],
             s["mode_accuracy"],
+            s["tdr"],
+            s["far"],
+            s["fia"],
         ] + [s["state_rmse"][st] for st in result.states]
         rows.append(["" if v is None else v for v in row])
     return head, rows
@@ -298,11 +317,16 @@ def _safe(name: str) -> str:
 def write_sweep_outputs(
     result: SweepResult, out: str | Path, *, figures: bool = True, extra: Mapping | None = None
 ) -> list[Path]:
-    """Write ``results.json``, ``results.csv`` and the figures into ``out``.
+    """Write ``results.json``, ``results.csv``, ``runs.csv`` and the figures into ``out``.
 
-    Figures: ``sweep_<case>.png`` (detection probability with Wilson intervals and median
-    delay against magnitude, every method on the same axes) for each fault case, and
-    ``confusion_<method>.png`` (the confusion counts summed over the method's cells).
+    ``runs.csv`` has one row per run (:func:`uimm_jax.studies.exports.run_rows`).
+
+    Figures: ``sweep_<case>.png`` for each fault case (detection probability and median
+    delay per fault, isolation accuracy, false declarations per run, mode accuracy and
+    TDR / FAR / FIA against magnitude, every method on the same axes, the fault-free
+    cells as reference lines; see :func:`~uimm_jax.studies.plots_sweep.plot_sweep`), and
+    ``confusion_<method>.png`` (one confusion matrix per magnitude, summed over the
+    method's cells of that magnitude, coloured by the share of each row).
 
     Args:
         result: the :class:`SweepResult`.
@@ -325,6 +349,7 @@ def write_sweep_outputs(
         w = csv.writer(fh)
         w.writerow(head)
         w.writerows(rows)
+    written.append(write_runs_csv(result, out / "runs.csv"))
     if not figures:
         return written
     from uimm_jax.studies import plots, plots_sweep
@@ -333,19 +358,26 @@ def write_sweep_outputs(
         cells = [s for s in result.summaries if s["case"] == case.name]
         fig = plots_sweep.plot_sweep(
             cells,
+            fault_free=[s for s in result.summaries if s["case"] == FAULT_FREE],
             title=f"{result.scenario}: case {case.name!r}, {result.spec.runs} runs per cell "
             "(95 % Wilson intervals)",
         )
         written.append(plots.save_figure(fig, out / f"sweep_{_safe(case.name)}.png"))
     for method in result.spec.methods:
         ss = [s for s in result.summaries if s["method"] == method]
-        mat = np.sum([s["confusion"]["matrix"] for s in ss], axis=0)
+        panels = []
+        for mag in sorted({s["magnitude"] for s in ss}):
+            group = [s for s in ss if s["magnitude"] == mag]
+            mat = np.sum([s["confusion"]["matrix"] for s in group], axis=0)
+            name = "fault-free runs" if mag == 0 else f"magnitude {mag:g}"
+            panels.append((f"{name} ({len(group)} cell{'s' * (len(group) > 1)})", mat))
         conf = ss[0]["confusion"]
-        fig = plots_sweep.plot_confusion(
-            mat,
+        fig = plots_sweep.plot_confusion_grid(
+            panels,
             conf["rows"],
             conf["columns"],
-            title=f"{method.upper()}: first new declaration per event ({len(ss)} cells)",
+            title=f"{method.upper()}: first new declaration per event, by magnitude "
+            "(colour: share of the row)",
         )
         written.append(plots.save_figure(fig, out / f"confusion_{method}.png"))
     return written

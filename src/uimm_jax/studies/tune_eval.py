@@ -16,7 +16,7 @@ from uimm_jax.engine import metrics
 from uimm_jax.engine.truth import NEVER
 from uimm_jax.scenario.parse import parse_scenario
 from uimm_jax.scenario.write import scenario_to_dict
-from uimm_jax.studies.sweep import run_sweep
+from uimm_jax.studies.sweep import _Eta, run_sweep
 from uimm_jax.studies.tune_loss import Problem, TrainingBatch
 
 __all__ = [
@@ -215,6 +215,20 @@ def before_after_table(before: dict, after: dict) -> str:
     return "\n".join(lines)
 
 
+def _labelled(progress, stage: str):
+    """``progress=True`` of :func:`run_sweep` with every line labelled ``stage``."""
+    if progress is not True:
+        return progress
+    state = {}
+
+    def report(label: str, done: int, total: int) -> None:
+        if "eta" not in state:
+            state["eta"] = _Eta(total)
+        state["eta"](f"{stage}: {label}", done)
+
+    return report
+
+
 def before_after(
     before_scenario, after_scenario, extra=(), *, runs=200, seed=0, progress=False, before=None
 ):
@@ -229,8 +243,20 @@ def before_after(
     cases = [before_scenario, *extra]
     b = before
     if b is None:
-        b = evaluate(before_scenario, runs=runs, seed=seed, progress=progress, cases_from=cases)
-    a = evaluate(after_scenario, runs=runs, seed=seed, progress=progress, cases_from=cases)
+        b = evaluate(
+            before_scenario,
+            runs=runs,
+            seed=seed,
+            progress=_labelled(progress, "before"),
+            cases_from=cases,
+        )
+    a = evaluate(
+        after_scenario,
+        runs=runs,
+        seed=seed,
+        progress=_labelled(progress, "after"),
+        cases_from=cases,
+    )
     return before_after_table(b, a), {"before": b, "after": a, "seed": seed, "runs": runs}
 
 
@@ -245,8 +271,9 @@ def tuned_scenario(scenario, settings: Mapping[str, Any], *, name: str | None = 
     Args:
         scenario: the source scenario.
         settings: :func:`settings_from_params` output.
-        name: the new scenario name (default: ``<name>-tuned``, or the name unchanged if
-            it already ends in ``-tuned``, so that tuning a tuned file again does not stack
+        name: the new scenario name (default: ``<name>-gd``, for gradient descent -- not
+            ``-tuned``, the suffix of the shipped hand-tuned files -- or the name unchanged
+            if it already ends in ``-gd``, so that tuning a tuned file again does not stack
             suffixes).
 
     Returns:
@@ -263,6 +290,6 @@ def tuned_scenario(scenario, settings: Mapping[str, Any], *, name: str | None = 
     flt.setdefault("decision", {})
     flt["decision"]["threshold"] = float(settings["threshold"])
     flt["decision"]["hold"] = int(settings["hold"])
-    default = scenario.name if scenario.name.endswith("-tuned") else f"{scenario.name}-tuned"
+    default = scenario.name if scenario.name.endswith("-gd") else f"{scenario.name}-gd"
     d["name"] = name or default
     return d

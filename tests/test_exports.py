@@ -1,0 +1,179 @@
+"""Exports and the standard FDI rates: timeseries.npz/csv of a run, TDR/FAR/FIA definitions.
+
+The rates are checked against a naive per-sample loop written here from the definitions of
+docs/montecarlo.md; the exports against the run's own outputs.  runs.csv is tested with the
+sweep fixture in test_montecarlo.py.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from _robustness_helpers import write_short
+from uimm_jax import cli
+from uimm_jax.engine import metrics
+from uimm_jax.studies.exports import TIMESERIES_KEYS, decimation_steps
+
+
+def _naive_rates(code, declared, prob):
+    faulty = flagged_faulty = flagged_free = 0
+    prob_sum = 0.0
+    for c, d, p in zip(code, declared, prob, strict=True):
+        if c:
+            faulty += 1
+            if d:
+                flagged_faulty += 1
+                prob_sum += p
+        elif d:
+            flagged_free += 1
+    free = len(code) - faulty
+    return {
+        "tdr": flagged_faulty / faulty if faulty else None,
+        "far": flagged_free / free if free else None,
+        "fia": prob_sum / flagged_faulty if flagged_faulty else None,
+    }
+
+
+@pytest.mark.parametrize("seed", [0, 42, 99])
+def test_fdi_rates_match_a_per_sample_loop(seed):
+    rng = np.random.default_rng(seed)
+    N = 500
+    code = rng.integers(0, 4, N) * (rng.random(N) < 0.6)
+    declared = rng.integers(0, 8, N) * (rng.random(N) < 0.5)
+    prob = rng.random(N)
+    terms = metrics.fdi_terms(jnp.asarray(code), jnp.asarray(declared), jnp.asarray(prob))
+    counts = metrics.FDICounts(*(np.sum(np.asarray(t)) for t in terms))
+    got = metrics.fdi_rates(counts, N)
+    want = _naive_rates(code, declared, prob)
+    assert got["tdr"] == want["tdr"] and got["far"] == want["far"]
+    assert got["fia"] == pytest.approx(want["fia"], rel=1e-12)
+
+
+def test_fdi_rates_without_a_denominator_are_none():
+    zeros = np.zeros(10, int)
+    terms = metrics.fdi_terms(jnp.asarray(zeros), jnp.asarray(zeros), jnp.zeros(10))
+    counts = metrics.FDICounts(*(np.sum(np.asarray(t)) for t in terms))
+    assert metrics.fdi_rates(counts, 10) == {"tdr": None, "far": 0.0, "fia": None}
+
+
+def test_true_set_probability_sums_the_models_of_the_true_set():
+    rng = np.random.default_rng(3)
+    probs = rng.random((4, 6))
+    probs /= probs.sum(0)
+    model_codes = np.array([[1, 1, 0, 2, 2, 5]] * 4)
+    model_codes[1:, :] = [[3], [5], [9]]
+    truth = np.array([1, 3, 7, 2, 9, 5])
+    got = np.asarray(metrics.true_set_probability(probs, model_codes, truth))
+    want = [sum(probs[m, r] for m in range(4) if model_codes[m, r] == truth[r]) for r in range(6)]
+    np.testing.assert_allclose(got, want, rtol=1e-15)
+    # (M,) codes broadcast over the runs (the combinatorial bank).
+    got = np.asarray(metrics.true_set_probability(probs, np.arange(4), truth))
+    want = [probs[truth[r], r] if truth[r] < 4 else 0.0 for r in range(6)]
+    np.testing.assert_allclose(got, want, rtol=1e-15)
+
+
+def test_sample_time_is_rounded_to_the_sample():
+    assert metrics.sample_time(600207, 1e-4) == 60.0207  # 600207 * 1e-4 = 60.020700000000005
+    assert metrics.sample_time(391, 1e-4) == 0.0391
+    for k in (1, 7, 12345, 999_999):
+        assert metrics.sample_time(k, 1e-4) == pytest.approx(k * 1e-4, rel=1e-12)
+
+
+def test_decimation_keeps_every_change():
+    declared = np.array([0, 0, 0, 0, 1, 1, 1, 1, 1, 3, 3])
+    recognised = np.array([0, 0, 1, 0, 1, 1, 1, 3, 3, 3, 3])
+    rows = decimation_steps(declared, recognised, 5)
+    assert list(rows) == [0, 2, 3, 4, 5, 7, 9, 10]
+
+
+@pytest.fixture(scope="module")
+def run_out(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("exports")
+    path = write_short(tmp / "short.toml", 1)
+    out = tmp / "out"
+    args = ["run", str(path), "--quiet", "--no-plots", "--csv", "50", "--out", str(out)]
+    assert cli.main(args) == 0
+    return out
+
+
+def test_run_writes_timeseries_npz(run_out):
+    summary = json.loads((run_out / "summary.json").read_text())
+    with np.load(run_out / "timeseries.npz") as z:
+        a = {k: z[k] for k in z.files}
+    N, M, n = summary["num_steps"], summary["num_models"], 3
+    assert set(TIMESERIES_KEYS) <= set(a)
+    assert a["time"].shape == (N,) and a["mode_probs"].shape == (N, M)
+    assert a["recognised"].shape == a["declared"].shape == a["health"].shape == (N,)
+    assert a["mean"].shape == (N, n)
+    np.testing.assert_allclose(a["time"], (np.arange(N) + 1) * summary["dt"], rtol=1e-12)
+    np.testing.assert_allclose(a["mode_probs"].sum(1), 1.0, atol=1e-12)
+    assert list(a["faults"]) == summary["faults"]
+    # The summary's declarations and rates follow from the exported arrays.
+    for d in summary["declarations"]:
+        j = summary["faults"].index(d["fault"])
+        k = int(np.argmax((a["declared"] >> j) & 1))
+        assert a["time"][k] == pytest.approx(d["time"], abs=1e-12)
+    flagged = a["declared"] != 0
+    faulty = a["truth"] != 0
+    assert summary["tdr"] == np.sum(flagged & faulty) / np.sum(faulty)
+    assert summary["far"] == np.sum(flagged & ~faulty) / np.sum(~faulty)
+    assert 0.9 < summary["fia"] <= 1.0  # the tuned scenario isolates both faults
+
+
+def test_run_writes_decimated_csv(run_out):
+    with np.load(run_out / "timeseries.npz") as z:
+        declared, recognised = z["declared"], z["recognised"]
+        mode_probs = z["mode_probs"]
+    rows = list(csv.DictReader((run_out / "timeseries.csv").open()))
+    steps = [int(r["step"]) for r in rows]
+    assert steps == list(decimation_steps(declared, recognised, 50))
+    assert len(rows) < len(declared) / 10
+    for r in rows[::37]:
+        k = int(r["step"])
+        assert int(r["declared"]) == declared[k]
+        assert float(r["mode_prob:D (no new fault)"]) == pytest.approx(mode_probs[k, 0], 1e-8)
+    assert rows[-1]["declared_set"] == "valve_wear+leakage"
+
+
+def test_run_csv_flag_is_checked(tmp_path, capsys):
+    path = write_short(tmp_path / "s.toml", 1)
+    assert cli.main(["run", str(path), "--csv", "-3", "--out", str(tmp_path / "o")]) == 2
+    assert "--csv" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("method", ["uimm", "imm"])
+def test_diagnoser_true_set_log_prob_is_the_generic_definition(method):
+    """The fast per-step FIA term equals the sum over the models of the true set."""
+    import warnings
+
+    import jax
+
+    from uimm_jax.engine.bank import set_codes
+    from uimm_jax.scenario.parse import load_scenario
+    from uimm_jax.studies.run import setup_scenario
+
+    sc = load_scenario("scenarios/paper_sim1_tuned.toml")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # initial_mode_probs adapted for "imm"
+        diag = setup_scenario(sc, method).diagnoser
+    F, M, B = diag.num_faults, diag.num_models, 64
+    rng = np.random.default_rng(5)
+    declared = jnp.asarray(rng.random((F, B)) < 0.4)
+    code = jnp.asarray(rng.integers(0, 2**F, B), jnp.int32)
+    code = code.at[:8].set(set_codes(declared)[:8])  # the true set is D itself
+    log_p = jax.nn.log_softmax(jnp.asarray(rng.normal(size=(M, B))), axis=0)
+    if method == "uimm":  # declared hypotheses are masked out of the bank
+        active = jnp.concatenate([jnp.ones((1, B), bool), ~declared], 0)
+        log_p = jnp.where(active, log_p, -jnp.inf)
+    got = np.exp(np.asarray(diag.true_set_log_prob(log_p, declared, code)))
+    model_codes = set_codes(diag.model_sets(declared))
+    want = np.asarray(metrics.true_set_probability(jnp.exp(log_p), model_codes, code))
+    np.testing.assert_allclose(got, want, rtol=1e-14, atol=0)
+    assert (want > 0).sum() > B // 4
+    if method == "uimm":  # some true sets are held by no model of the bank
+        assert (want == 0).sum() > 0
