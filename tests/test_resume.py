@@ -1,6 +1,7 @@
 """Resumable sweeps: SIGKILL at a random point, then ``--resume``, equals an uninterrupted run.
 
-The sweep runs in a subprocess (``uimm-jax sweep``) with three batches of four chunks;
+The sweep runs in a subprocess (``uimm-jax sweep``) with three batches of four chunks
+(runs of 2e4 samples, so that a chunk lasts long enough for the kill to land in it);
 the test reads its progress line and kills it (SIGKILL) at a random batch and chunk, after
 a random delay, so the kill falls during a batch (or while a batch file is written).  The
 resumed sweep must skip the batches already on disk and give per-run arrays equal, bit
@@ -26,11 +27,24 @@ from uimm_jax.studies import sweep as mc
 from uimm_jax.studies import sweep_store
 
 ARRAYS = ("onset_step", "decl_step", "correct_samples", "sq_err", "health")
-KILL_SWEEP = dict(SWEEP, runs=4, batch=16, chunk=500)  # 40 runs: 3 batches of 16, 4 chunks
+KILL_SWEEP = dict(SWEEP, runs=4, batch=16, chunk=5000)  # 40 runs: 3 batches of 16, 4 chunks
 
 
-def cli(*args):
+def kill_scenario():
+    """The small sweep with runs of 2 s (chunks of ~0.1 s: a kill lands where it aims)."""
+    from uimm_jax.cli.sweep import _with_duration
+
+    return _with_duration(small_scenario(KILL_SWEEP), 2.0)
+
+
+def cli(*args, cache=None):
     env = dict(os.environ, JAX_PLATFORMS="cpu")
+    if cache is not None:  # the resumed process loads what the killed one compiled
+        env.update(
+            JAX_COMPILATION_CACHE_DIR=str(cache),
+            JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+            JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="-1",
+        )
     return subprocess.Popen(
         [sys.executable, "-m", "uimm_jax", "sweep", *args],
         env=env,
@@ -65,10 +79,10 @@ def test_sigkill_then_resume_equals_uninterrupted(tmp_path):
     batch = rng.randint(1, 3)  # the last batch: not after its last chunk (it may end first)
     chunk, delay = rng.randint(1, 4 if batch < 3 else 3), rng.uniform(0.0, 0.03)
     where = f"(random seed {seed}: kill in batch {batch} after {chunk} chunks + {delay:.2f} s)"
-    sc = small_scenario(KILL_SWEEP)
+    sc = kill_scenario()
     path = dump_scenario(sc, tmp_path / "kill.toml")
     out = tmp_path / "out"
-    proc = cli(str(path), "--out", str(out), "--no-plots")
+    proc = cli(str(path), "--out", str(out), "--no-plots", cache=tmp_path / "xla")
     try:
         log = kill_at(proc, batch, chunk, delay)
     finally:
@@ -78,13 +92,13 @@ def test_sigkill_then_resume_equals_uninterrupted(tmp_path):
     assert proc.returncode == -signal.SIGKILL, f"{where}: the sweep was not killed\n{log}"
     store = out / "checkpoint"
     written = sorted(p.name for p in store.glob("batch-*.npz"))
-    assert len(written) <= batch and not (out / "runs.npz").exists(), where
+    assert len(written) < 3 and not (out / "runs.npz").exists(), where
     for name in written:  # whole files only (atomic writes)
         with np.load(store / name) as z:
             assert z["cell"].shape == z["run"].shape == z["correct"].shape, where
     # Resume; meanwhile the uninterrupted sweep runs in this process.
-    proc = cli(str(path), "--out", str(out), "--no-plots", "--resume")
-    whole = mc.run_sweep(sc, batch=32, chunk=2000)  # other batches, same numbers
+    proc = cli(str(path), "--out", str(out), "--no-plots", "--resume", cache=tmp_path / "xla")
+    whole = mc.run_sweep(sc, chunk=20_000)  # the same batches, longer chunks
     stdout, stderr = proc.communicate(timeout=300)
     assert proc.returncode == 0, f"{where}\n{stderr.decode()[-3000:]}"
     got = np.load(out / "runs.npz")
@@ -107,7 +121,7 @@ def finished(tmp_path_factory):
 
 def test_resume_of_a_finished_sweep_runs_nothing(finished):
     sc, out, first = finished
-    again = mc.run_sweep(sc, checkpoint=out, resume=True, batch=64, chunk=123)
+    again = mc.run_sweep(sc, checkpoint=out, resume=True, chunk=123)
     for name in ARRAYS:
         np.testing.assert_array_equal(getattr(again, name), getattr(first, name))
 
@@ -120,6 +134,7 @@ def test_resume_of_a_finished_sweep_runs_nothing(finished):
         (dict(magnitudes=[1.0]), "settings.magnitudes ([0.6, 1.0] then, [1.0] now)"),
         (dict(methods=["imm"]), "settings.methods"),
         (dict(dtype=np.float32), 'settings.dtype ("float64" then, "float32" now)'),
+        (dict(batch=16), "layout.batch (32 then, 16 now)"),
     ],
 )
 def test_resume_refuses_other_settings_and_names_them(finished, change, words):
@@ -144,7 +159,7 @@ def test_resume_refuses_another_scenario_and_names_the_field(finished):
 def test_unfinished_sweep_is_not_overwritten(tmp_path):
     sc = small_scenario()
     shape = (10, 2, 3, 3)
-    manifest = sweep_store.manifest_for(sc, sweep_spec(sc), np.float64)
+    manifest = sweep_store.manifest_for(sc, sweep_spec(sc), np.float64, 32, 1)
     store, _ = sweep_store.open_store(tmp_path, manifest, resume=False, shape=shape)
     store.save_batch(
         np.array([0]), np.array([1]),

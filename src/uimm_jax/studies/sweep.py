@@ -439,20 +439,19 @@ def run_sweep(
             mag_arr[cell.index, :, j] = ev.magnitude * cell.magnitude
     K = 1 + max((len(c.events) for c in spec.cases), default=0)
     K = max(K, 2)  # at least one (padding) event: one compiled shape for every batch
+    # Batches: as few as ``batch`` allows, of equal sizes, a multiple of LANES per device.
+    jobs_per_method = R * (C // len(spec.methods))
+    nb = _ceil_div(jobs_per_method, spec.batch)
+    B = _ceil_div(_ceil_div(jobs_per_method, nb), LANES * nd) * LANES * nd
     store = None
     if checkpoint is not None:
-        manifest = manifest_for(scenario, spec, dtype)
+        manifest = manifest_for(scenario, spec, dtype, B, nd)
         store, fin = open_store(checkpoint, manifest, resume=resume, shape=(C, R, F, n))
     elif resume:
         raise ValueError("resume: give the checkpoint folder to resume from")
     else:
         fin = Finished.empty(C, R, F, n)
     decl_step, correct, sq_err, health = fin.decl_step, fin.correct, fin.sq_err, fin.health
-
-    # Batches: as few as ``batch`` allows, of equal sizes, a multiple of LANES per device.
-    jobs_per_method = R * (C // len(spec.methods))
-    nb = _ceil_div(jobs_per_method, spec.batch)
-    B = _ceil_div(_ceil_div(jobs_per_method, nb), LANES * nd) * LANES * nd
     chunk_len = spec.chunk or _even_chunk(N, max(1000, CHUNK_RUN_STEPS // B))
     chunk_len = min(chunk_len, N)
     runs_done = int(fin.done.sum())

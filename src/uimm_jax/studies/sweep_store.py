@@ -12,14 +12,19 @@ flushed to disk and renamed (``os.replace``, atomic on POSIX), so a kill at any 
 leaves only whole files; leftover temporary files are removed when the folder is opened
 again.
 
-Resuming (``resume=True``) reads the manifest, refuses when the scenario or the settings
-differ (naming each differing field), and loads the finished runs; the sweep then runs
-only the others.  A run's numbers do not depend on the batch it is in, on the batch size,
-the chunk length or the device count (:data:`uimm_jax.studies.sweep.LANES`), so a resumed
-sweep equals an uninterrupted one bit for bit, and ``batch``, ``chunk`` and the device and
-process counts may change between the two.  A sweep that is not resumed refuses a folder
-that holds an unfinished sweep (it would discard finished batches), and starts afresh
-over a finished one.
+The manifest also records the batch layout: the runs per batch and the number of devices
+(over all processes).  Resuming (``resume=True``) reads the manifest, refuses when the
+scenario, the settings or the layout differ (naming each differing field), and loads the
+finished runs; the sweep then runs only the others, in the same batches as an
+uninterrupted sweep (the batches run in order and are stored whole), so a resumed sweep
+equals an uninterrupted one bit for bit.  The chunk length and the process count may
+change (one process with two devices and two processes with one each give the same
+bits).  The layout must not: a run's declarations never depend on it, but its summed
+squared state errors may differ in the last bits between batch layouts (measured on the
+AVX-512 development VM: a batch-mate's fault declaration moves them, see
+docs/montecarlo.md).  A sweep that is not resumed refuses a folder that holds an
+unfinished sweep (it would discard finished batches), and starts afresh over a finished
+one.
 
 In a multi-process sweep process 0 reads and writes the folder and shares what it read
 with the others (:func:`uimm_jax.studies.distributed.share`).
@@ -75,12 +80,22 @@ class Finished(NamedTuple):
         )
 
 
-def manifest_for(scenario, spec, dtype) -> dict:
-    """The record of what a sweep computes (JSON values only)."""
+def manifest_for(scenario, spec, dtype, batch: int, devices: int) -> dict:
+    """The record of what a sweep computes (JSON values only).
+
+    Args:
+        scenario: the scenario.
+        spec: the :class:`~uimm_jax.scenario.sweep.SweepSpec`.
+        dtype: the float dtype.
+        batch: runs per batch actually used (all devices).
+        devices: the number of devices the runs are sharded over.
+    """
     sc = scenario_to_dict(scenario)
-    sc.pop("sweep", None)  # its fields are in the settings (batch, chunk: speed only)
+    sc.pop("sweep", None)  # its fields are in the settings
     settings = dict(spec_settings(spec), dtype=np.dtype(dtype).name)
-    return json.loads(json.dumps({"format": FORMAT, "scenario": sc, "settings": settings}))
+    layout = {"batch": int(batch), "devices": int(devices)}
+    doc = {"format": FORMAT, "scenario": sc, "settings": settings, "layout": layout}
+    return json.loads(json.dumps(doc))
 
 
 def _differences(old: Any, new: Any, path: str) -> list[str]:
@@ -201,12 +216,22 @@ def _open(folder: Path, manifest: dict, resume: bool, shape) -> tuple[SweepStore
             )
         diffs = _differences({k: old.get(k) for k in manifest}, manifest, "")
         if diffs:
+            hint = ""
+            if any(d.startswith(".layout") for d in diffs):
+                lay = old.get("layout") or {}
+                hint = (
+                    f" (the batch layout: give --batch {lay.get('batch')} and run on "
+                    f"{lay.get('devices')} device(s) in all; it decides the last bits of the "
+                    "state errors)"
+                )
             raise ValueError(
                 f"--resume: the sweep in {folder} was run with another scenario or other "
                 "settings: "
                 + "; ".join(d.lstrip(".") for d in diffs[:8])
                 + ("; ..." if len(diffs) > 8 else "")
-                + ". Resume with the same scenario and settings, or write to another --out"
+                + ". Resume with the same scenario and settings"
+                + hint
+                + ", or write to another --out"
             )
         finished = store.load(shape)
     else:
