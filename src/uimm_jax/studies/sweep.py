@@ -20,9 +20,12 @@ noise (:func:`uimm_jax.engine.truth.truth_step`, step ``k`` from ``fold_in(noise
 ``draw_key`` the onsets drawn in a window (event ``e`` of a case from
 ``fold_in(draw_key, e)``).  Run ``r`` of every cell uses the same keys (common random
 numbers): cells differ only by what they vary, which sharpens comparisons between methods
-and magnitudes.  The same seed gives the same numbers bit for bit, whatever the batch size,
-the chunk length and the number of devices (each device's share of a batch is padded to a
-multiple of :data:`LANES` runs).  The keys come from
+and magnitudes.  The same seed gives the same numbers bit for bit for the same batch
+layout (runs per batch, devices), whatever the chunk length and however the devices are
+spread over processes; each device's share of a batch is padded to a multiple of
+:data:`LANES` runs.  Across layouts the declarations stay the same, but the summed squared
+state errors may move in the last bits (a batch-mate's declaration does it;
+``docs/montecarlo.md``).  The keys come from
 :func:`uimm_jax.engine.truth.run_keys`, the truth plans from
 :func:`uimm_jax.studies.truth.build_truth_plan` (the builder of single runs).
 
@@ -38,7 +41,11 @@ per run, the declaration step of each fault, the number of samples whose recogni
 set equals the truth, the sums of squared state errors and the OR of the health flags.
 (One scan holding both the random number generator and the filter bank was measured 3-7x
 slower on XLA CPU.)  The run axis is sharded over the devices with ``shard_map`` (no
-communication: the runs are independent).
+communication: the runs are independent).  After ``jax.distributed.initialize``
+(:mod:`uimm_jax.studies.distributed`) the devices are those of every process: each puts
+its share of a batch on its own devices and the metrics are gathered on every process
+after each batch.  With ``checkpoint=`` each finished batch is written to disk as it ends
+and ``resume=True`` skips those (:mod:`uimm_jax.studies.sweep_store`).
 
 **Metrics**: :func:`uimm_jax.studies.sweep_outputs.cell_summary` (definitions in
 :mod:`uimm_jax.engine.metrics`).
@@ -82,8 +89,10 @@ The run axis is the engine's innermost axis: XLA CPU compiles the loop over it t
 code (4 doubles a vector, 4 vectors an iteration on AVX2) with a differently rounded scalar
 remainder, so a run's numbers would depend on its position in a batch that is not a
 multiple of 16 (8 was enough while models were the innermost axis; measured: the 4-device
-sweep of the tests differs from the 1-device one in the last bits with 8).  Padding keeps
-the numbers bit-identical whatever the batch size and the device count."""
+sweep of the tests differs from the 1-device one in the last bits with 8).  Padding keeps a
+run's numbers independent of its position in the batch; they may still move in the last
+bits with the batch's other runs (see the module doc), so a resumed sweep keeps its
+layout."""
 
 
 def _cells(spec: SweepSpec) -> list[Cell]:
