@@ -13,9 +13,9 @@ float32 runs the scaled scenario of :mod:`uimm_jax.studies.float32` (the sweep k
 truth too, in scaled units: time only).  Compilation is the first chunk minus a steady
 chunk.  Each sweep configuration is timed over as many chunks as fit its share of
 ``--budget`` seconds (all of them if they fit); the table says how many steps were timed.
-``--dry-run`` shrinks every size (runs 16 and 32 of 400 samples, a 1000-sample run) to
-check the script on a CPU (about 40 s on the 2-core development VM, compilation nearly
-all of it).
+``--dry-run`` shrinks every size (one batch of 16 runs of 400 samples, a 1000-sample run,
+each dtype) to check every code path of the script on a CPU (about 30 s on the 2-core
+development VM, compilation nearly all of it).
 """
 
 from __future__ import annotations
@@ -164,7 +164,7 @@ def main(argv=None) -> int:
 
     jax.config.update("jax_enable_x64", True)
     if args.dry_run:
-        sizes, steps, chunk, single = (16, 32), 400, 100, 1000
+        sizes, steps, chunk, single = (16,), 400, 100, 1000
     else:
         sizes, steps, chunk, single = (1_000, 10_000, 100_000), 100_000, 1000, 1_000_000
     print(
