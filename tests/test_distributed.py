@@ -4,10 +4,9 @@ The two processes are ``uimm-jax sweep --coordinator 127.0.0.1:PORT --num-proces
 --process-id I``, each with one CPU device, so the runs are sharded over two devices in
 two processes; process 0 gathers and writes ``runs.npz``.  Its per-run arrays must equal,
 bit for bit, those of one process sharding the same sweep over two devices
-(``--host-devices 2``, the same batch layout), and its declarations those of one process
-on one device (the summed squared errors may differ in the last bits between batch
-layouts, see docs/montecarlo.md).  The launcher detection (Slurm, Open MPI) and the
-argument checks are tested without a cluster.
+(``--host-devices 2``, the same batch layout; across layouts the summed squared errors
+may differ in the last bits, see docs/montecarlo.md).  The launcher detection (Slurm,
+Open MPI) and the argument checks are tested without a cluster.
 """
 
 import json
@@ -82,7 +81,6 @@ def test_two_processes_equal_one_bit_for_bit(tmp_path):
     ]
     procs.append(one_proc)
     try:
-        one = mc.run_sweep(small_scenario())  # meanwhile, in this process (one device)
         logs = [p.communicate(timeout=300) for p in procs]
     finally:
         for p in procs:
@@ -97,16 +95,12 @@ def test_two_processes_equal_one_bit_for_bit(tmp_path):
     got, want = np.load(out / "runs.npz"), np.load(out_one / "runs.npz")
     for name in ARRAYS:
         np.testing.assert_array_equal(got[name], want[name], err_msg=name)
-    assert one.devices == 1 and one.processes == 1
-    for name in ("onset_step", "decl_step", "correct_samples", "health"):
-        np.testing.assert_array_equal(got[name], getattr(one, name), err_msg=name)
+    assert got["decl_step"].shape == (10, 2, 3)
     # Process 0 printed the table and the progress in runs over both processes; process 1
     # neither (gloo prints a line of its own).
     (out0, err0), (out1, err1), _ = logs
     assert "fault-free" in out0 and "fault-free" not in out1
-    assert f"{one.decl_step.shape[0] * one.decl_step.shape[1]} runs finished over 2 processes" in (
-        err0
-    )
+    assert "20/20 runs finished over 2 processes" in err0
     assert "runs finished" not in err1
 
 
