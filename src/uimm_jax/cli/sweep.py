@@ -196,10 +196,10 @@ def _cmd_sweep(args) -> int:
     import jax
 
     if args.host_devices and jax.default_backend() == "cpu":
-        if len(jax.devices()) != args.host_devices:
+        if len(jax.local_devices()) != args.host_devices:  # per process
             raise ValueError(
                 f"--host-devices {args.host_devices}: JAX had already started with "
-                f"{len(jax.devices())} device(s)"
+                f"{len(jax.local_devices())} device(s)"
             )
 
     from uimm_jax.scenario.parse import load_scenario
