@@ -24,8 +24,8 @@ and magnitudes.  The same seed gives the same numbers bit for bit for the same b
 layout (runs per batch, devices), whatever the chunk length and however the devices are
 spread over processes; each device's share of a batch is padded to a multiple of
 :data:`LANES` runs.  Across layouts the declarations stay the same, but the summed squared
-state errors may move in the last bits (a batch-mate's declaration does it;
-``docs/montecarlo.md``).  The keys come from
+state errors may move in the last bits (the covariance update picks the Joseph form for
+the whole device batch when any run needs it; ``docs/montecarlo.md``).  The keys come from
 :func:`uimm_jax.engine.truth.run_keys`, the truth plans from
 :func:`uimm_jax.studies.truth.build_truth_plan` (the builder of single runs).
 

@@ -21,7 +21,7 @@ equals an uninterrupted one bit for bit.  The chunk length and the process count
 change (one process with two devices and two processes with one each give the same
 bits).  The layout must not: a run's declarations never depend on it, but its summed
 squared state errors may differ in the last bits between batch layouts (measured on the
-AVX-512 development VM: a batch-mate's fault declaration moves them, see
+development VM: the covariance update picks its form once per device batch, see
 docs/montecarlo.md).  A sweep that is not resumed refuses a folder that holds an
 unfinished sweep (it would discard finished batches), and starts afresh over a finished
 one.
