@@ -19,8 +19,8 @@ finished runs; the sweep then runs only the others, in the same batches as an
 uninterrupted sweep (the batches run in order and are stored whole), so a resumed sweep
 equals an uninterrupted one bit for bit.  The chunk length and the process count may
 change (one process with two devices and two processes with one each give the same
-bits).  The layout must not: a run's declarations never depend on it, but its summed
-squared state errors may differ in the last bits between batch layouts (measured on the
+bits).  The layout must not: a run's declarations did not change with it in any
+comparison made, but its summed squared state errors may differ in the last bits between batch layouts (measured on the
 development VM: the covariance update picks its form once per device batch, see
 docs/montecarlo.md).  A sweep that is not resumed refuses a folder that holds an
 unfinished sweep (it would discard finished batches), and starts afresh over a finished
