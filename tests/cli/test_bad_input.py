@@ -207,7 +207,7 @@ def test_cli_checks_out_and_flags_before_running(tmp_path, capsys):
         assert re.search(pattern, err), (pattern, err)
     with pytest.raises(SystemExit):  # argparse: an empty item is not silently dropped
         cli.main(["sweep", str(f), "--magnitudes", "1,,2"])
-    assert "--magnitudes: empty item in '1,,2'" in capsys.readouterr().err
+    assert "argument --magnitudes: empty item in '1,,2'" in capsys.readouterr().err
 
 
 def test_mode_probability_plot_ignores_markers_outside_the_data(tmp_path):

@@ -2,14 +2,18 @@
 
 Registered by :func:`uimm_jax.cli.build_parser`.  Runs
 :func:`uimm_jax.studies.sweep.run_sweep` with the scenario's ``[sweep]`` table, overridden by
-the options, and writes ``results.json``, ``results.csv`` and the figures (see
-``docs/montecarlo.md``).  The CLI has already enabled float64 and the recommended XLA CPU
-flags when the command runs.
+the options, and writes ``results.json``, ``results.csv``, ``runs.npz`` and the figures (see
+``docs/montecarlo.md``); each finished batch goes to ``--out``/checkpoint as it ends, so
+that ``--resume`` can continue a killed sweep.  With ``--coordinator``, ``--num-processes``
+and ``--process-id`` (or under ``srun``/``mpirun``) it joins a multi-process sweep
+(:mod:`uimm_jax.studies.distributed`); process 0 prints and writes.  The CLI has already
+enabled float64 and the recommended XLA CPU flags when the command runs.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 
@@ -19,17 +23,25 @@ __all__ = ["register"]
 def _items(text: str) -> list[str]:
     items = [v.strip() for v in text.split(",")]
     if not all(items):
-        raise argparse.ArgumentTypeError(f"empty item in {text!r}")
+        raise argparse.ArgumentTypeError(f"empty item in {text!r}; give e.g. uimm,imm or 0.5,1")
     return items
 
 
 def _floats(text: str) -> list[float]:
-    try:
-        return [float(v) for v in _items(text)]
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected comma-separated numbers, got {text!r}"
-        ) from None
+    """Comma-separated finite numbers (argparse reports the option's name)."""
+    out = []
+    for item in _items(text):
+        try:
+            value = float(item)
+        except ValueError:
+            value = math.nan
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(
+                f"{item!r} in {text!r} is not a finite number; give comma-separated numbers, "
+                "e.g. 0.5,1"
+            )
+        out.append(value)
+    return out
 
 
 def _methods(text: str) -> list[str]:
@@ -83,6 +95,17 @@ def register(subparsers) -> None:
         "--fault-free", dest="fault_free", action="store_true", default=None,
         help="include the fault-free cells (the default)",
     )  # fmt: skip
+    s.add_argument(
+        "--resume", action="store_true",
+        help="continue the sweep recorded in --out (finished batches are skipped; refused "
+        "if the scenario or the settings differ)",
+    )  # fmt: skip
+    d = s.add_argument_group(
+        "several processes (jax.distributed; srun/mpirun: from the environment)"
+    )
+    d.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0")
+    d.add_argument("--num-processes", type=int, help="number of processes")
+    d.add_argument("--process-id", type=int, help="this process's index, 0 .. P - 1")
     s.add_argument("--no-plots", action="store_true", help="write results.json/csv only")
     s.add_argument("--quiet", action="store_true", help="no progress output")
     s.set_defaults(func=_cmd_sweep)
@@ -125,7 +148,12 @@ def _force_host_devices(count: int) -> None:
 
 
 def _cmd_sweep(args) -> int:
-    from uimm_jax._checks import check_out_dir, check_positive_int, check_seed
+    from uimm_jax._checks import (
+        check_out_dir,
+        check_positive_finite,
+        check_positive_int,
+        check_seed,
+    )
 
     for flag, value, low in (
         ("--runs", args.runs, 1),
@@ -141,15 +169,21 @@ def _cmd_sweep(args) -> int:
         from uimm_jax.cli._args import MAX_HOST_DEVICES
 
         check_positive_int(args.host_devices, "--host-devices", 1, MAX_HOST_DEVICES)
+    if args.duration is not None:
+        check_positive_finite(args.duration, "--duration")
     if args.host_devices:
         _force_host_devices(args.host_devices)
+    from uimm_jax.studies import distributed
+
+    distributed.initialize(args.coordinator, args.num_processes, args.process_id)
+    main = distributed.is_main()
     import jax
 
     if args.host_devices and jax.default_backend() == "cpu":
-        if len(jax.devices()) != args.host_devices:
+        if len(jax.local_devices()) != args.host_devices:  # per process
             raise ValueError(
                 f"--host-devices {args.host_devices}: JAX had already started with "
-                f"{len(jax.devices())} device(s)"
+                f"{len(jax.local_devices())} device(s)"
             )
 
     from uimm_jax.scenario.parse import load_scenario
@@ -179,15 +213,27 @@ def _cmd_sweep(args) -> int:
         * len(spec.noise_scales)
         * (int(spec.fault_free) + len(spec.cases) * len(spec.magnitudes))
     )
-    print(
-        f"sweep {sc.name} from {args.scenario}: {ncells} cells x {spec.runs} runs x "
-        f"{sc.num_steps} steps ({ncells * spec.runs * sc.num_steps:.3g} run-steps), "
-        f"methods {', '.join(spec.methods)}, {args.devices or len(jax.devices())} device(s)",
-        file=sys.stderr,
-    )
+    procs = f" of {jax.process_count()} processes" if jax.process_count() > 1 else ""
+    if main:
+        print(
+            f"sweep {sc.name} from {args.scenario}: {ncells} cells x {spec.runs} runs x "
+            f"{sc.num_steps} steps ({ncells * spec.runs * sc.num_steps:.3g} run-steps), "
+            f"methods {', '.join(spec.methods)}, {args.devices or len(jax.devices())} "
+            f"device(s){procs}",
+            file=sys.stderr,
+        )
     t0 = time.perf_counter()
-    result = run_sweep(sc, **opts, devices=args.devices, progress=not args.quiet)
+    result = run_sweep(
+        sc,
+        **opts,
+        devices=args.devices,
+        progress=main and not args.quiet,
+        checkpoint=out / "checkpoint",
+        resume=args.resume,
+    )
     wall = time.perf_counter() - t0
+    if not main:
+        return 0
     written = write_sweep_outputs(
         result,
         out,

@@ -114,7 +114,7 @@ def run_keys(seed: int, runs: int) -> tuple[np.ndarray, np.ndarray]:
     random onsets.  The same derivation serves sweeps and tuning batches, so a training
     seed and an evaluation seed that differ give disjoint noise.
     """
-    with jax.default_device(jax.devices("cpu")[0]):
+    with jax.default_device(jax.local_devices(backend="cpu")[0]):
         keys = jax.random.split(jax.random.PRNGKey(int(seed)), int(runs))
         both = np.asarray(jax.vmap(jax.random.split)(keys))  # (runs, 2, 2)
     return both[:, 0], both[:, 1]

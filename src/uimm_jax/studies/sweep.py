@@ -20,9 +20,12 @@ noise (:func:`uimm_jax.engine.truth.truth_step`, step ``k`` from ``fold_in(noise
 ``draw_key`` the onsets drawn in a window (event ``e`` of a case from
 ``fold_in(draw_key, e)``).  Run ``r`` of every cell uses the same keys (common random
 numbers): cells differ only by what they vary, which sharpens comparisons between methods
-and magnitudes.  The same seed gives the same numbers bit for bit, whatever the batch size,
-the chunk length and the number of devices (each device's share of a batch is padded to a
-multiple of :data:`LANES` runs).  The keys come from
+and magnitudes.  The same seed gives the same numbers bit for bit for the same batch
+layout (runs per batch, devices), whatever the chunk length and however the devices are
+spread over processes; each device's share of a batch is padded to a multiple of
+:data:`LANES` runs.  Across layouts the declarations stay the same, but the summed squared
+state errors may move in the last bits (the covariance update picks the Joseph form for
+the whole device batch when any run needs it; ``docs/montecarlo.md``).  The keys come from
 :func:`uimm_jax.engine.truth.run_keys`, the truth plans from
 :func:`uimm_jax.studies.truth.build_truth_plan` (the builder of single runs).
 
@@ -38,7 +41,11 @@ per run, the declaration step of each fault, the number of samples whose recogni
 set equals the truth, the sums of squared state errors and the OR of the health flags.
 (One scan holding both the random number generator and the filter bank was measured 3-7x
 slower on XLA CPU.)  The run axis is sharded over the devices with ``shard_map`` (no
-communication: the runs are independent).
+communication: the runs are independent).  After ``jax.distributed.initialize``
+(:mod:`uimm_jax.studies.distributed`) the devices are those of every process: each puts
+its share of a batch on its own devices and the metrics are gathered on every process
+after each batch.  With ``checkpoint=`` each finished batch is written to disk as it ends
+and ``resume=True`` skips those (:mod:`uimm_jax.studies.sweep_store`).
 
 **Metrics**: :func:`uimm_jax.studies.sweep_outputs.cell_summary` (definitions in
 :mod:`uimm_jax.engine.metrics`).
@@ -52,6 +59,7 @@ import sys
 import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import jax
@@ -66,6 +74,7 @@ from uimm_jax.errors import UIMMWarning
 from uimm_jax.scenario.sweep import FAULT_FREE, CaseSpec, SweepSpec, sweep_spec
 from uimm_jax.studies.run import RunSetup, setup_scenario
 from uimm_jax.studies.sweep_outputs import Cell, SweepResult, cell_summary
+from uimm_jax.studies.sweep_store import Finished, manifest_for, open_store
 from uimm_jax.studies.truth import build_truth_plan
 
 __all__ = ["CHUNK_RUN_STEPS", "LANES", "batch_inputs", "run_batch", "run_sweep"]
@@ -83,8 +92,10 @@ The run axis is the engine's innermost axis: XLA CPU compiles the loop over it t
 code (4 doubles a vector, 4 vectors an iteration on AVX2) with a differently rounded scalar
 remainder, so a run's numbers would depend on its position in a batch that is not a
 multiple of 16 (8 was enough while models were the innermost axis; measured: the 4-device
-sweep of the tests differs from the 1-device one in the last bits with 8).  Padding keeps
-the numbers bit-identical whatever the batch size and the device count."""
+sweep of the tests differs from the 1-device one in the last bits with 8).  Padding keeps a
+run's numbers independent of its position in the batch; they may still move in the last
+bits with the batch's other runs (see the module doc), so a resumed sweep keeps its
+layout."""
 
 
 def _cells(spec: SweepSpec) -> list[Cell]:
@@ -103,7 +114,7 @@ def _onset_steps(case: CaseSpec, draw_keys: np.ndarray, dt: float, num_steps: in
     """Onset step of each event of ``case`` for every run: ``(runs, E)`` int64."""
     R = draw_keys.shape[0]
     out = np.zeros((R, len(case.events)), np.int64)
-    with jax.default_device(jax.devices("cpu")[0]):
+    with jax.default_device(jax.local_devices(backend="cpu")[0]):
         for e, ev in enumerate(case.events):
             lo, hi = ev.time
             if hi > lo:
@@ -215,9 +226,17 @@ def _sharded_chunk(diag, dt, p, mesh, carry_spec, plan_spec, keys_spec):
 
 
 def _place(tree, specs, mesh):
+    """Global arrays split over ``mesh`` (every process holds the same host values)."""
     from jax.sharding import NamedSharding
 
-    return jax.tree.map(lambda a, s: jax.device_put(a, NamedSharding(mesh, s)), tree, specs)
+    if jax.process_count() == 1:
+        return jax.tree.map(lambda a, s: jax.device_put(a, NamedSharding(mesh, s)), tree, specs)
+
+    def put(a, s):
+        host = np.asarray(a)
+        return jax.make_array_from_callback(host.shape, NamedSharding(mesh, s), host.__getitem__)
+
+    return jax.tree.map(put, tree, specs)
 
 
 def _fetch(tree):
@@ -272,20 +291,28 @@ def run_batch(
 
 
 class _Eta:
-    """Default progress printer: one updating line on stderr."""
+    """Default progress printer: one updating line on stderr.
 
-    def __init__(self, total: int):
-        self.total = total
+    It shows the runs finished out of the sweep's total, counted over every process (each
+    process runs its share of every batch, so a batch's runs finish together everywhere),
+    the share of the run-steps done and an ETA from this session's pace.
+    """
+
+    def __init__(self, total_runs: int, resumed: int, num_steps: int, processes: int):
+        self.total, self.resumed, self.N = total_runs, resumed, num_steps
+        self.where = f" over {processes} processes" if processes > 1 else ""
         self.t0 = time.perf_counter()
 
-    def __call__(self, label: str, done: int) -> None:
+    def __call__(self, label: str, runs_done: int, steps_done: float) -> None:
         el = time.perf_counter() - self.t0
-        frac = done / max(self.total, 1)
-        eta = el / frac - el if frac > 0 else float("nan")
-        end = "\n" if done >= self.total else "\r"
+        frac = steps_done / max(self.total * self.N, 1)
+        start = self.resumed / max(self.total, 1)
+        pace = (frac - start) / el if el > 0 else 0.0
+        eta = 0.0 if frac >= 1 else (1.0 - frac) / pace if pace > 0 else float("nan")
+        end = "\n" if runs_done >= self.total else "\r"
         print(
-            f"  sweep {label:24s} {100 * frac:5.1f}% ({done:.3g}/{self.total:.3g} run-steps, "
-            f"{el:7.1f} s, ETA {eta:7.1f} s)",
+            f"  sweep {label:24s} {runs_done}/{self.total} runs finished{self.where} "
+            f"({100 * frac:5.1f}% of run-steps, {el:7.1f} s, ETA {eta:7.1f} s)",
             end=end,
             file=sys.stderr,
             flush=True,
@@ -312,6 +339,11 @@ def _ceil_div(a: int, b: int) -> int:
 def _devices_for(devices) -> list:
     if devices is None:
         return list(jax.devices())
+    if jax.process_count() > 1 and devices != len(jax.devices()):
+        raise ValueError(
+            f"devices: a sweep over {jax.process_count()} processes runs on every device of "
+            f"every process ({len(jax.devices())}); leave devices (--devices) unset"
+        )
     if isinstance(devices, numbers.Integral):
         devs = jax.devices()
         if not 1 <= int(devices) <= len(devs):
@@ -320,9 +352,9 @@ def _devices_for(devices) -> list:
     return list(devices)
 
 
-def _report_chunk(report, label, base, B, done, total, elapsed):
+def _report_chunk(report, label, runs_done, real, N, done, total, elapsed):
     del total, elapsed
-    report(label, base + done * B)
+    report(label, runs_done, (runs_done + real * done / N) * N)
 
 
 def run_sweep(
@@ -340,6 +372,8 @@ def run_sweep(
     devices: Any = None,
     dtype: Any = None,
     progress: bool | Callable[[str, int, int], None] = False,
+    checkpoint: str | Path | None = None,
+    resume: bool = False,
 ) -> SweepResult:
     """Run a Monte Carlo sweep of a scenario (see the module doc for the semantics).
 
@@ -359,14 +393,20 @@ def run_sweep(
         batch: runs per compiled batch (the batches are made equal, with each device's
             share rounded up to a multiple of :data:`LANES` = 16 runs).
         chunk: time steps per compiled chunk.
-        devices: devices to shard the run axis over: ``None`` (all of ``jax.devices()``),
-            a count, or a list of devices.
+        devices: devices to shard the run axis over: ``None`` (all of ``jax.devices()``:
+            every device of every process after ``jax.distributed.initialize``), a count,
+            or a list of devices (single process only).
         dtype: float dtype (default: JAX's default float; enable float64 first).
-        progress: ``True`` for a progress line with an ETA on stderr, or a callback
-            ``(label, done_run_steps, total_run_steps)``.
+        progress: ``True`` for a progress line with an ETA on stderr (runs finished out
+            of the total), or a callback ``(label, done_run_steps, total_run_steps)``.
+        checkpoint: a folder where each finished batch's per-run arrays are written as
+            the sweep goes (:mod:`uimm_jax.studies.sweep_store`).
+        resume: continue the sweep recorded in ``checkpoint``: skip its finished runs
+            (refused if the scenario or the settings differ).
 
     Returns:
-        A :class:`SweepResult` with one summary per cell.
+        A :class:`SweepResult` with one summary per cell (on every process of a
+        multi-process sweep).
     """
     spec = sweep_spec(
         scenario,
@@ -411,35 +451,47 @@ def run_sweep(
             mag_arr[cell.index, :, j] = ev.magnitude * cell.magnitude
     K = 1 + max((len(c.events) for c in spec.cases), default=0)
     K = max(K, 2)  # at least one (padding) event: one compiled shape for every batch
-    decl_step = np.full((C, R, F), -1, np.int32)
-    correct = np.zeros((C, R), np.int64)
-    sq_err = np.zeros((C, R, n))
-    health = np.zeros((C, R), np.int32)
-    fdi = metrics.FDICounts(*(np.zeros((C, R), t) for t in (np.int64,) * 3 + (np.float64,)))
-
     # Batches: as few as ``batch`` allows, of equal sizes, a multiple of LANES per device.
     jobs_per_method = R * (C // len(spec.methods))
     nb = _ceil_div(jobs_per_method, spec.batch)
     B = _ceil_div(_ceil_div(jobs_per_method, nb), LANES * nd) * LANES * nd
+    store = None
+    if checkpoint is not None:
+        manifest = manifest_for(scenario, spec, dtype, B, nd)
+        store, fin = open_store(checkpoint, manifest, resume=resume, shape=(C, R, F, n))
+    elif resume:
+        raise ValueError("resume: give the checkpoint folder to resume from")
+    else:
+        fin = Finished.empty(C, R, F, n)
+    decl_step, correct, sq_err, health = fin.decl_step, fin.correct, fin.sq_err, fin.health
     chunk_len = spec.chunk or _even_chunk(N, max(1000, CHUNK_RUN_STEPS // B))
     chunk_len = min(chunk_len, N)
-    total = len(spec.methods) * nb * B * N
+    runs_done = int(fin.done.sum())
     if progress is True:
-        report = _Eta(total)
+        report = _Eta(C * R, runs_done, N, jax.process_count())
     elif callable(progress):
-        report = lambda label, done, tot=total: progress(label, done, tot)  # noqa: E731
+        report = lambda label, runs, steps: progress(label, int(steps), C * R * N)  # noqa: E731
     else:
         report = None
     t_start = time.perf_counter()
-    done_steps = 0
+    ran = 0
     for method in spec.methods:
+        jobs = [
+            (c.index, r, c.noise_scale)
+            for c in cells
+            if c.method == method
+            for r in range(R)
+            if not fin.done[c.index, r]
+        ]
+        if not jobs:
+            continue
         with warnings.catch_warnings():
             # A sweep over methods adapts the filter settings written for the scenario's
             # own method on purpose (docs/montecarlo.md, "Cells"): no warning per method.
             warnings.filterwarnings("ignore", r"\[filter\]\.\w+ is written for", UIMMWarning)
             setup = setup_scenario(scenario, method, dtype=dtype)
-        jobs = [(c.index, r, c.noise_scale) for c in cells if c.method == method for r in range(R)]
-        for b in range(nb):
+        nbm = _ceil_div(len(jobs), B)
+        for b in range(nbm):
             part = jobs[b * B : (b + 1) * B]
             real = len(part)
             part = part + [part[-1]] * (B - real)
@@ -447,21 +499,34 @@ def run_sweep(
             plan, keys, carry = batch_inputs(
                 setup, onset_step[ci, ri], mag_arr[ci, ri], noise, noise_keys[ri], K, dtype
             )
-            label = f"{method} batch {b + 1}/{nb}"
+            label = f"{method} batch {b + 1}/{nbm}"
             cb = None
             if report is not None:
-                cb = functools.partial(_report_chunk, report, label, done_steps, B)
+                cb = functools.partial(_report_chunk, report, label, runs_done, real, N)
             m = run_batch(setup, plan, keys, carry, N, chunk_len, mesh=mesh, progress=cb)
-            done_steps += B * N
             c, r = ci[:real], ri[:real]
-            decl_step[c, r] = m.decl_step.T[:real]
-            correct[c, r] = m.correct[:real]
-            sq_err[c, r] = m.sq_err[:, :real].T
-            health[c, r] = m.health[:real]
-            for acc, got in zip(fdi, m.fdi, strict=True):
-                acc[c, r] = got[:real]
-    if report is not None and done_steps < total:
-        report("done", total)
+            got = dict(
+                decl_step=m.decl_step.T[:real],
+                correct=m.correct[:real],
+                sq_err=m.sq_err[:, :real].T,
+                health=m.health[:real],
+                **{f"fdi_{k}": v[:real] for k, v in m.fdi._asdict().items()},
+            )
+            for name, value in got.items():
+                getattr(fin, name)[c, r] = value
+            if store is not None:
+                store.save_batch(c, r, **got)
+            runs_done += real
+            ran += real
+            if report is not None:
+                report(label, runs_done, runs_done * N)
+    if store is not None:
+        store.write_manifest(complete=True)
+    if report is not None and ran == 0:  # everything was resumed
+        report("resumed", runs_done, runs_done * N)
+    fdi = metrics.FDICounts(
+        fin.fdi_faulty, fin.fdi_flagged_faulty, fin.fdi_flagged_free, fin.fdi_true_prob
+    )
     result = SweepResult(
         spec=spec,
         cells=cells,
@@ -480,6 +545,7 @@ def run_sweep(
         noise_keys=noise_keys,
         runtime_s=time.perf_counter() - t_start,
         devices=nd,
+        processes=jax.process_count(),
         batch=B,
         chunk=chunk_len,
     )

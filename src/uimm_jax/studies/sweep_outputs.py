@@ -48,7 +48,7 @@ from uimm_jax.engine import metrics
 from uimm_jax.scenario.sweep import FAULT_FREE, SweepSpec
 from uimm_jax.studies.exports import write_runs_csv
 
-__all__ = ["Cell", "SweepResult", "cell_summary", "write_sweep_outputs"]
+__all__ = ["Cell", "SweepResult", "cell_summary", "spec_settings", "write_sweep_outputs"]
 
 _RUN_HEALTH = ("cov_repaired", "nonfinite_caught", "gated")  # simulated runs miss nothing
 
@@ -94,7 +94,8 @@ class SweepResult:
         noise_keys: ``(R, 2)`` uint32 noise key of each run, or ``None``.
         summaries: one dict per cell (:func:`cell_summary`).
         runtime_s: wall time of the simulations (compilation included).
-        devices: number of devices the run axis was sharded over.
+        devices: number of devices the run axis was sharded over (all processes).
+        processes: number of processes (``jax.process_count()``).
         batch: runs per compiled batch actually used.
         chunk: time steps per compiled chunk actually used.
     """
@@ -117,6 +118,7 @@ class SweepResult:
     summaries: list[dict] = dataclasses.field(default_factory=list)
     runtime_s: float = 0.0
     devices: int = 1
+    processes: int = 1
     batch: int = 0
     chunk: int = 0
 
@@ -124,6 +126,17 @@ class SweepResult:
     def run_steps(self) -> int:
         """Total number of simulated run-steps."""
         return len(self.cells) * self.spec.runs * self.num_steps
+
+    def run_arrays(self) -> dict[str, np.ndarray]:
+        """The per-run arrays by name (what ``runs.npz`` holds)."""
+        return {
+            "onset_step": self.onset_step,
+            "decl_step": self.decl_step,
+            "correct_samples": self.correct_samples,
+            "sq_err": self.sq_err,
+            "health": self.health,
+            **{f"fdi_{k}": v for k, v in self.fdi._asdict().items()},
+        }
 
     def detected(self) -> np.ndarray:
         """``(C, R, F)`` bool: the fault occurred and was correctly declared."""
@@ -139,7 +152,6 @@ class SweepResult:
 
     def to_json(self) -> dict:
         """The ``results.json`` document."""
-        s = self.spec
         return {
             "scenario": self.scenario,
             "source": self.source,
@@ -148,30 +160,44 @@ class SweepResult:
             "dt": self.dt,
             "num_steps": self.num_steps,
             "duration_s": self.num_steps * self.dt,
-            "seed": s.seed,
-            "runs": s.runs,
-            "methods": list(s.methods),
-            "magnitudes": list(s.magnitudes),
-            "noise_scales": list(s.noise_scales),
-            "cases": [
-                {
-                    "name": c.name,
-                    "events": [
-                        {"fault": e.fault, "time": list(e.time), "magnitude": e.magnitude}
-                        for e in c.events
-                    ],
-                }
-                for c in s.cases
-            ],
-            "fault_free": s.fault_free,
+            **spec_settings(self.spec),
             "batch": self.batch,
             "chunk": self.chunk,
             "devices": self.devices,
+            "processes": self.processes,
             "run_steps": self.run_steps,
             "runtime_s": self.runtime_s,
             "run_steps_per_s": self.run_steps / self.runtime_s if self.runtime_s > 0 else None,
             "cells": self.summaries,
         }
+
+
+def spec_settings(spec: SweepSpec) -> dict:
+    """The settings of a sweep that decide its numbers, as JSON values.
+
+    ``seed``, ``runs``, ``methods``, ``magnitudes``, ``noise_scales``, ``cases`` and
+    ``fault_free``; not ``batch`` nor ``chunk``, which change the speed and never the
+    numbers.  Shared by ``results.json`` and the resume record
+    (:mod:`uimm_jax.studies.sweep_store`).
+    """
+    return {
+        "seed": spec.seed,
+        "runs": spec.runs,
+        "methods": list(spec.methods),
+        "magnitudes": list(spec.magnitudes),
+        "noise_scales": list(spec.noise_scales),
+        "cases": [
+            {
+                "name": c.name,
+                "events": [
+                    {"fault": e.fault, "time": list(e.time), "magnitude": e.magnitude}
+                    for e in c.events
+                ],
+            }
+            for c in spec.cases
+        ],
+        "fault_free": spec.fault_free,
+    }
 
 
 def cell_summary(result: SweepResult, index: int) -> dict:
@@ -317,7 +343,9 @@ def _safe(name: str) -> str:
 def write_sweep_outputs(
     result: SweepResult, out: str | Path, *, figures: bool = True, extra: Mapping | None = None
 ) -> list[Path]:
-    """Write ``results.json``, ``results.csv``, ``runs.csv`` and the figures into ``out``.
+    """Write ``results.json``, ``results.csv``, ``runs.csv``, ``runs.npz`` and the figures.
+
+    ``runs.npz`` holds the per-run arrays (:meth:`SweepResult.run_arrays`).
 
     ``runs.csv`` has one row per run (:func:`uimm_jax.studies.exports.run_rows`).
 
@@ -342,8 +370,9 @@ def write_sweep_outputs(
     doc = result.to_json()
     if extra:
         doc.update(extra)
-    written = [out / "results.json", out / "results.csv"]
+    written = [out / "results.json", out / "results.csv", out / "runs.npz"]
     written[0].write_text(json.dumps(doc, indent=2) + "\n")
+    np.savez(written[2], **result.run_arrays())
     head, rows = _csv_rows(result)
     with written[1].open("w", newline="") as fh:
         w = csv.writer(fh)

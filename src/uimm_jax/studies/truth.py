@@ -112,6 +112,6 @@ def scenario_inputs(scenario, num_steps: int | None = None, dtype=None) -> np.nd
     num_steps = scenario.num_steps if num_steps is None else num_steps
     t = np.arange(num_steps) * float(scenario.dt)
     sig = InputSignal.from_spec(scenario.input, jnp.float64)
-    with jax.default_device(jax.devices("cpu")[0]):
+    with jax.default_device(jax.local_devices(backend="cpu")[0]):
         u = np.asarray(input_value(sig, jnp.asarray(t)))
     return np.repeat(u[:, None], scenario.plant.input_dim, axis=1).astype(dtype or np.float64)

@@ -115,7 +115,7 @@ def test_sweep_magnitudes_message_names_the_flag(short_file, capsys):
     with pytest.raises(SystemExit):
         cli.main(["sweep", str(short_file), "--magnitudes", "0.5,abc"])
     err = capsys.readouterr().err
-    assert "argument --magnitudes: expected comma-separated numbers, got '0.5,abc'" in err
+    assert "argument --magnitudes: 'abc' in '0.5,abc' is not a finite number" in err
     assert "_floats" not in err
 
 
