@@ -36,6 +36,7 @@ from uimm_jax.engine.truth import (
     standard_noise,
     truth_step,
 )
+from uimm_jax.xla_flags import warn_if_slow
 
 __all__ = [
     "FILTER_OUTPUTS",
@@ -89,6 +90,7 @@ def scan_chunked(
     Returns:
         ``(final_carry, outputs)`` with outputs concatenated along the time axis as NumPy.
     """
+    warn_if_slow()
     outs = []
     t0 = time.perf_counter()
     done = 0

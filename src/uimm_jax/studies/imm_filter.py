@@ -30,6 +30,7 @@ from uimm_jax.engine.dynamics import LinearCache, MatrixBankDynamics
 from uimm_jax.engine.imm import IMMParams, IMMState, imm_step
 from uimm_jax.engine.scan import as_batch_of_one, drop_batch_of_one
 from uimm_jax.errors import UIMMWarning
+from uimm_jax.xla_flags import warn_if_slow
 
 __all__ = ["IMMResult", "LinearGaussianBank", "imm_filter"]
 
@@ -238,6 +239,7 @@ def imm_filter(
 
     dtype = jnp.asarray(0.0).dtype  # float64 when x64 is on
     _warn_if_float32(dtype)
+    warn_if_slow()
 
     def bm(a, lead):  # (M, *mat) -> (*mat, M)
         return jnp.asarray(np.moveaxis(a, 0, -1), dtype)
