@@ -166,7 +166,6 @@ def test_spec_defaults_from_scenario():
             "[sweep].cases[0].events[0].time",
             "samples are 0..1999: the fault would never occur",
         ),
-        ({"magnitudes": [1.0, 3.0]}, "[sweep].magnitudes", "Eh must stay > 0"),
         ({"batch": 0}, "[sweep].batch", ">= 1"),
         ({"cases": {"a": 1}}, "[sweep].cases", "array of tables"),
         (

@@ -32,6 +32,7 @@ from uimm_jax.engine.metrics import RunMetrics, update_metrics
 from uimm_jax.engine.truth import InputSignal, TruthPlan, input_value, truth_step
 
 __all__ = [
+    "ESTIMATE_OUTPUTS",
     "FILTER_OUTPUTS",
     "SimCarry",
     "diagnose_scan",
@@ -44,6 +45,9 @@ __all__ = [
 
 FILTER_OUTPUTS = ("mode_probs", "mean", "recognised", "declared", "health")
 """Per-step outputs :func:`filter_chunk` keeps by default (``"cov"`` may be added)."""
+
+ESTIMATE_OUTPUTS = ("magnitude", "magnitude_sd")
+"""Per-step outputs of a size-estimating diagnoser (``(F,)`` estimate and its sd)."""
 
 
 def scan_chunked(
@@ -225,8 +229,8 @@ def filter_chunk(diag, params, state, k0, uy, outputs: tuple[str, ...] = FILTER_
         state: its :class:`~uimm_jax.engine.uimm.DiagState`.
         k0: first step of the chunk (unused; :func:`scan_chunked`'s signature).
         uy: ``(us (L, p), ys (L, m))``.
-        outputs: per-step outputs to keep, among :data:`FILTER_OUTPUTS` and ``"cov"``
-            (static).
+        outputs: per-step outputs to keep, among :data:`FILTER_OUTPUTS`, ``"cov"`` and,
+            for a size-estimating diagnoser, :data:`ESTIMATE_OUTPUTS` (static).
 
     Returns:
         ``(state, outputs)`` with the outputs in the order asked.
@@ -244,6 +248,8 @@ def filter_chunk(diag, params, state, k0, uy, outputs: tuple[str, ...] = FILTER_
             "declared": lambda: info.declared,
             "health": lambda: info.step.health,
             "cov": lambda: info.step.cov,
+            "magnitude": lambda: jnp.moveaxis(info.magnitude, 0, -1),
+            "magnitude_sd": lambda: jnp.moveaxis(info.magnitude_sd, 0, -1),
         }
         return st, tuple(avail[name]() for name in outputs)
 

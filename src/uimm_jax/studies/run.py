@@ -34,14 +34,26 @@ import numpy as np
 from uimm_jax._checks import check_positive_int, check_seed
 from uimm_jax.engine import metrics
 from uimm_jax.engine.bank import FaultTable, fault_table
-from uimm_jax.engine.scan import FILTER_OUTPUTS, filter_chunk, scan_chunked, truth_scan
+from uimm_jax.engine.scan import (
+    ESTIMATE_OUTPUTS,
+    FILTER_OUTPUTS,
+    filter_chunk,
+    scan_chunked,
+    truth_scan,
+)
 from uimm_jax.engine.truth import InputSignal, TruthPlan
-from uimm_jax.engine.uimm import Diagnoser, DiagParams, build_diagnoser, make_params
+from uimm_jax.engine.uimm import Diagnoser, DiagParams, make_params
+from uimm_jax.engine.uimm_est import UIMMEstDiagnoser, build_diagnoser
 from uimm_jax.errors import UIMMWarning
 from uimm_jax.plants.dynamics import make_dynamics
 from uimm_jax.studies.checks import check_run_data, check_setup_args
 from uimm_jax.studies.measured import truth_for_measurements
-from uimm_jax.studies.truth import build_truth_plan, scenario_inputs, scenario_onsets
+from uimm_jax.studies.truth import (
+    build_truth_plan,
+    scenario_inputs,
+    scenario_onsets,
+    scenario_ramps,
+)
 
 __all__ = [
     "RunResult",
@@ -91,7 +103,12 @@ class RunSetup:
 @functools.lru_cache(maxsize=64)
 def _cached_diagnoser(plant, dt, method, gate, faults_key, nominal_key):
     nominal = np.asarray(nominal_key)
-    table = fault_table(plant.param_names, nominal, {k: dict(v) for k, v in faults_key})
+    table = fault_table(
+        plant.param_names,
+        nominal,
+        {k: dict(v) for k, v in faults_key},
+        log_params=plant.positive_params,
+    )
     refs = [nominal] + [
         table.theta_numpy(np.eye(table.num_faults, dtype=bool)[j]) for j in range(table.num_faults)
     ]
@@ -176,7 +193,10 @@ def setup_scenario(
     init = diag.init(np.asarray(flt.initial_mean), np.asarray(flt.initial_cov), mu0, (), dtype)
     # Truth plan: phase 0 nominal, then one phase per event (faults accumulate).
     onset, magnitude, steps = scenario_onsets(scenario, table.names, magnitude_scale)
-    plan = build_truth_plan(scenario, diag.dyn, table, onset, magnitude, dtype=dtype)
+    ramp, end = scenario_ramps(scenario, table.names)
+    plan = build_truth_plan(
+        scenario, diag.dyn, table, onset, magnitude, dtype=dtype, ramp=ramp, end=end
+    )
     return RunSetup(
         scenario,
         method,
@@ -269,6 +289,8 @@ def filter_measurements(
     N = ys.shape[0]
     us = jnp.asarray(scenario_inputs(sc, N) if u is None else u, dtype)
     keys = FILTER_OUTPUTS + (("cov",) if with_cov else ())
+    if isinstance(setup.diagnoser, UIMMEstDiagnoser):
+        keys += ESTIMATE_OUTPUTS
     run = lambda c, k0, uy: filter_chunk(setup.diagnoser, setup.params, c, k0, uy, keys)
     final, out = scan_chunked(
         run, setup.init_state, N, chunk=chunk, xs=(us, ys), progress=progress, timings=timings
@@ -451,6 +473,7 @@ def summarize(
         "faults": names,
         "events": [
             {"fault": ev.fault, "time": float(ev.time), "magnitude": float(ev.magnitude)}
+            | {"ramp": float(ev.ramp), "end": None if ev.end is None else float(ev.end)}
             for ev in sc.events
         ],
         "declarations": [

@@ -59,7 +59,7 @@ import numpy as np
 
 from uimm_jax.engine.metrics import RunMetrics, init_metrics
 from uimm_jax.engine.scan import SimCarry, scan_chunked, simulate_diagnose
-from uimm_jax.engine.truth import TruthPlan, run_keys
+from uimm_jax.engine.truth import RAMP_STAIRS, TruthPlan, run_keys
 from uimm_jax.scenario.sweep import FAULT_FREE, CaseSpec, SweepSpec, sweep_spec
 from uimm_jax.studies.run import RunSetup, setup_scenario
 from uimm_jax.studies.sweep_outputs import Cell, SweepResult, cell_summary
@@ -92,8 +92,43 @@ def _cells(spec: SweepSpec) -> list[Cell]:
                 cells.append(Cell(len(cells), method, FAULT_FREE, 0.0, noise))
             for case in spec.cases:
                 for mag in spec.magnitudes:
-                    cells.append(Cell(len(cells), method, case.name, mag, noise))
+                    for ramp in spec.ramps:
+                        cells.append(Cell(len(cells), method, case.name, mag, noise, ramp))
     return cells
+
+
+def _durations(case: CaseSpec, draw_keys: np.ndarray, dt: float) -> np.ndarray:
+    """Steps each event of ``case`` lasts for every run: ``(runs, E)`` int64, -1: for good.
+
+    A window's duration is drawn from ``fold_in(draw_key, 1000 + e)`` (independent of the
+    onset draws).
+    """
+    R = draw_keys.shape[0]
+    out = np.full((R, len(case.events)), -1, np.int64)
+    with jax.default_device(jax.devices("cpu")[0]):
+        for e, ev in enumerate(case.events):
+            if ev.duration is None:
+                continue
+            lo, hi = ev.duration
+            u = jax.vmap(
+                lambda k, e=e: jax.random.uniform(jax.random.fold_in(k, 1000 + e), (), jnp.float64)
+            )(jnp.asarray(draw_keys))
+            t = lo + (hi - lo) * np.asarray(u, np.float64)
+            out[:, e] = np.maximum(np.round(t / dt).astype(np.int64), 1)
+    return out
+
+
+def _max_phases(spec: SweepSpec) -> int:
+    """An upper bound on the truth phases of any run (one compiled shape per batch)."""
+    worst = 0
+    for case in spec.cases:
+        ramps = [r for r in spec.ramps if r is not None]
+        k = 0
+        for ev in case.events:
+            ramp = max([ev.ramp] + ramps) if ramps or ev.ramp else 0.0
+            k += (RAMP_STAIRS + 1 if ramp > 0 else 1) + (ev.duration is not None)
+        worst = max(worst, k)
+    return max(2, 1 + worst)  # at least one padding phase: one compiled shape
 
 
 def _onset_steps(case: CaseSpec, draw_keys: np.ndarray, dt: float, num_steps: int) -> np.ndarray:
@@ -123,7 +158,15 @@ def _broadcast_state(state, B: int):
 
 
 def batch_inputs(
-    setup: RunSetup, onset, magnitude, noise_scale, keys, num_phases: int, dtype
+    setup: RunSetup,
+    onset,
+    magnitude,
+    noise_scale,
+    keys,
+    num_phases: int,
+    dtype,
+    ramp=None,
+    end=None,
 ) -> tuple[TruthPlan, jax.Array, SimCarry]:
     """Truth plan, noise keys and initial carry of one batch of ``B`` runs.
 
@@ -135,6 +178,8 @@ def batch_inputs(
         keys: ``(B, 2)`` noise keys (:func:`~uimm_jax.engine.truth.run_keys`).
         num_phases: phases per run (one compiled shape for every batch).
         dtype: float dtype.
+        ramp: optional ``(B, F)`` ramp steps of each fault.
+        end: optional ``(B, F)`` end step of each fault (-1: never).
     """
     scenario = setup.scenario
     B = len(keys)
@@ -147,6 +192,8 @@ def batch_inputs(
         dtype=dtype,
         num_phases=num_phases,
         noise_scale=noise_scale,
+        ramp=ramp,
+        end=end,
         where="[sweep]: ",
         hint="the magnitudes and the fault values",
     )
@@ -327,6 +374,7 @@ def run_sweep(
     *,
     runs: int | None = None,
     magnitudes: Sequence[float] | None = None,
+    ramps: Sequence[float] | None = None,
     methods: Sequence[str] | None = None,
     noise_scales: Sequence[float] | None = None,
     fault_free: bool | None = None,
@@ -347,6 +395,7 @@ def run_sweep(
         scenario: a :class:`~uimm_jax.scenario.spec.Scenario`.
         runs: runs per cell.
         magnitudes: scales of the events' magnitudes.
+        ramps: ramp lengths (s) replacing every event's ramp (one cell each).
         methods: ``"uimm"`` and/or ``"imm"``.
         noise_scales: scales of the truth's noise standard deviations.
         fault_free: include the fault-free case.
@@ -371,6 +420,7 @@ def run_sweep(
         seed=seed,
         methods=methods,
         magnitudes=magnitudes,
+        ramps=ramps,
         noise_scales=noise_scales,
         fault_free=fault_free,
         cases=cases,
@@ -394,10 +444,13 @@ def run_sweep(
     names = scenario.fault_names
     noise_keys, draw_keys = run_keys(spec.seed, R)
     onsets = {c.name: _onset_steps(c, draw_keys, dt, N) for c in spec.cases}
+    lasts = {c.name: _durations(c, draw_keys, dt) for c in spec.cases}
     cases_by_name = {c.name: c for c in spec.cases}
     C = len(cells)
     onset_step = np.full((C, R, F), -1, np.int32)
     mag_arr = np.zeros((C, R, F))
+    ramp_arr = np.zeros((C, R, F), np.int64)
+    end_arr = np.full((C, R, F), -1, np.int64)
     for cell in cells:
         if cell.case == FAULT_FREE:
             continue
@@ -406,8 +459,11 @@ def run_sweep(
             j = names.index(ev.fault)
             onset_step[cell.index, :, j] = onsets[case.name][:, e]
             mag_arr[cell.index, :, j] = ev.magnitude * cell.magnitude
-    K = 1 + max((len(c.events) for c in spec.cases), default=0)
-    K = max(K, 2)  # at least one (padding) event: one compiled shape for every batch
+            ramp_s = ev.ramp if cell.ramp is None else cell.ramp
+            ramp_arr[cell.index, :, j] = int(round(ramp_s / dt))
+            last = lasts[case.name][:, e]
+            end_arr[cell.index, :, j] = np.where(last > 0, onsets[case.name][:, e] + last, -1)
+    K = _max_phases(spec)
     decl_step = np.full((C, R, F), -1, np.int32)
     correct = np.zeros((C, R), np.int64)
     sq_err = np.zeros((C, R, n))
@@ -437,7 +493,15 @@ def run_sweep(
             part = part + [part[-1]] * (B - real)
             ci, ri, noise = (np.array(a) for a in zip(*part, strict=True))
             plan, keys, carry = batch_inputs(
-                setup, onset_step[ci, ri], mag_arr[ci, ri], noise, noise_keys[ri], K, dtype
+                setup,
+                onset_step[ci, ri],
+                mag_arr[ci, ri],
+                noise,
+                noise_keys[ri],
+                K,
+                dtype,
+                ramp=ramp_arr[ci, ri],
+                end=end_arr[ci, ri],
             )
             label = f"{method} batch {b + 1}/{nb}"
             cb = None

@@ -58,6 +58,7 @@ class Cell(NamedTuple):
         case: the case name (``"fault-free"`` for the fault-free case).
         magnitude: the magnitude scale (0 for the fault-free case).
         noise_scale: the truth noise scale.
+        ramp: s, the ramp of every event of the cell (``None``: the events' own).
     """
 
     index: int
@@ -65,6 +66,7 @@ class Cell(NamedTuple):
     case: str
     magnitude: float
     noise_scale: float
+    ramp: float | None = None
 
 
 @dataclasses.dataclass
@@ -204,6 +206,7 @@ def cell_summary(result: SweepResult, index: int) -> dict:
         "method": cell.method,
         "case": cell.case,
         "magnitude": cell.magnitude,
+        "ramp": cell.ramp,
         "noise_scale": cell.noise_scale,
         "runs": R,
         "num_steps": N,
