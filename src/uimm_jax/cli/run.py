@@ -96,6 +96,21 @@ def _write_figures(result, out: Path) -> list[str]:
         ),
         "model_count.png": plots.plot_model_count(max(10, diag.num_faults)),
     }
+    if "magnitude" in o:
+        from uimm_jax.studies.plots_faults import plot_fault_parameters
+        from uimm_jax.studies.truth import true_magnitudes
+
+        names = list(diag.table.names)
+        figs["fault_parameters.png"] = plot_fault_parameters(
+            t,
+            o["magnitude"],
+            o["magnitude_sd"],
+            true_magnitudes(sc, names, len(t)),
+            np.asarray(o["declared"]),
+            diag.table,
+            list(sc.plant.param_names),
+            title=f"Estimated fault parameters vs truth - {title}",
+        )
     written = []
     for name, fig in figs.items():
         plots.save_figure(fig, out / name)

@@ -32,8 +32,8 @@ settle on nominal in fault-free data.
 On either, the winner's posterior goes to every model, except that the winner's slot
 takes the old model 0's (the two swap meaning: after declaring ``j``, ``D_new - f_j`` is
 the old ``D``), the two swap probabilities, and the cache is rebuilt for the new sets.
-The cache's expansion point is re-centred whenever an estimate in use moves more than
-``relin`` from it.  Rebuilds happen under ``lax.cond``: only on steps that need them.
+The cache's expansion point is re-centred whenever an estimate in use by a model of
+probability >= 1 % moves more than ``relin`` from it.  Rebuilds happen under ``lax.cond``: only on steps that need them.
 """
 
 from __future__ import annotations
@@ -320,8 +320,10 @@ class UIMMEstDiagnoser(Diagnoser):
         """Hand-over on a change of ``D`` and re-centring of the expansion (module doc)."""
         n, s = self.dyn.n, self.settings
         models = np.arange(self.num_models).reshape((-1,) + (1,) * winner.ndim)
+        # Re-centre when a model that matters (mu >= 1 %) has moved from its expansion point.
         drift = jnp.where(cache.use, jnp.abs(st.mean[n:] - cache.a0), 0.0)
-        recentre = jnp.any(drift > s.relin)
+        matters = st.log_mode_probs >= np.log(0.01)
+        recentre = jnp.any((drift > s.relin) & matters)
 
         def rebuild(operand):
             st, c = operand

@@ -43,7 +43,7 @@ from uimm_jax.engine.scan import (
 )
 from uimm_jax.engine.truth import InputSignal, TruthPlan
 from uimm_jax.engine.uimm import Diagnoser, DiagParams, make_params
-from uimm_jax.engine.uimm_est import UIMMEstDiagnoser, build_diagnoser
+from uimm_jax.engine.uimm_est import Z95, UIMMEstDiagnoser, build_diagnoser
 from uimm_jax.errors import UIMMWarning
 from uimm_jax.plants.dynamics import make_dynamics
 from uimm_jax.studies.checks import check_run_data, check_setup_args
@@ -420,6 +420,47 @@ def _rates(N: int, runtime_s: float, chunk_timings: list | None) -> dict[str, An
     return {"steps_per_s": float(N / runtime_s) if runtime_s > 0 else None, "compile_s": None}
 
 
+def decision_changes(outputs: dict, truth_codes, names, dt: float) -> dict[str, Any]:
+    """Declarations and retractions of a run from its declared-set codes, with sizes.
+
+    Every switch on of fault ``j`` at step ``k`` is a declaration (*correct* when ``j`` is
+    in the truth at ``k``), every switch off a retraction (*correct* when ``j`` is no longer
+    in the truth: the fault had ended).  With per-step ``magnitude`` and ``magnitude_sd``
+    outputs (a size-estimating diagnoser) a declaration carries the estimate and its 95 %
+    interval at the end of the run (at the last step before its retraction if retracted).
+
+    Returns:
+        ``{"declarations": [...], "retractions": [...]}``; the declarations only when the
+        outputs have magnitudes (else the caller's list stands).
+    """
+    codes = np.asarray(outputs["declared"], np.int64)
+    truth = np.asarray(truth_codes, np.int64)
+    prev = np.concatenate([[0], codes[:-1]])
+    decl, retr = [], []
+    mag = outputs.get("magnitude")
+    sd = outputs.get("magnitude_sd")
+    for j, name in enumerate(names):
+        bit = 1 << j
+        on = np.flatnonzero((codes & bit) & ~(prev & bit))
+        off = np.flatnonzero(~(codes & bit) & (prev & bit))
+        for k in on:
+            entry = {"fault": name, "time": float((k + 1) * dt), "correct": bool(truth[k] & bit)}
+            if mag is not None:
+                later = off[off > k]
+                last = int(later[0]) - 1 if later.size else len(codes) - 1
+                m, s_ = float(mag[last, j]), float(sd[last, j])
+                entry |= {"magnitude": m, "magnitude_ci": [m - Z95 * s_, m + Z95 * s_]}
+            decl.append(entry)
+        retr += [
+            {"fault": name, "time": float((k + 1) * dt), "correct": not bool(truth[k] & bit)}
+            for k in off
+        ]
+    out: dict[str, Any] = {"retractions": sorted(retr, key=lambda d: d["time"])}
+    if mag is not None:
+        out["declarations"] = sorted(decl, key=lambda d: d["time"])
+    return out
+
+
 def summarize(
     setup: RunSetup,
     truth_codes: np.ndarray,
@@ -451,6 +492,10 @@ def summarize(
     found = metrics.detected(onset, decl_step)
     decl = metrics.declaration_list(decl_step, names, dt)
     is_false = [bool(false_mask[names.index(d["fault"])]) for d in decl]
+    changes = decision_changes(outputs, truth_codes, names, dt)
+    if "declarations" in changes:  # a diagnoser that retracts: every switch on counts
+        decl = changes["declarations"]
+        is_false = [not d["correct"] for d in decl]
     false = [
         {"fault": d["fault"], "time": d["time"]} for d, f in zip(decl, is_false, strict=True) if f
     ]
@@ -478,8 +523,10 @@ def summarize(
         ],
         "declarations": [
             {"fault": d["fault"], "time": d["time"], "correct": not f}
+            | {k: d[k] for k in ("magnitude", "magnitude_ci") if k in d}
             for d, f in zip(decl, is_false, strict=True)
         ],
+        "retractions": changes["retractions"],
         "detection_delay_s": delays,
         "false_declarations": len(false),
         "false_declaration_list": false,

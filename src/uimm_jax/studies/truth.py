@@ -14,9 +14,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from uimm_jax.engine.truth import InputSignal, NonFiniteTruth, TruthPlan, input_value, truth_plan
+from uimm_jax.engine.truth import (
+    InputSignal,
+    NonFiniteTruth,
+    TruthPlan,
+    fault_breakpoints,
+    input_value,
+    truth_plan,
+)
 
-__all__ = ["build_truth_plan", "scenario_inputs", "scenario_onsets", "scenario_ramps"]
+__all__ = [
+    "build_truth_plan",
+    "scenario_inputs",
+    "scenario_onsets",
+    "scenario_ramps",
+    "true_magnitudes",
+]
 
 
 def scenario_ramps(scenario, names):
@@ -35,6 +48,19 @@ def scenario_ramps(scenario, names):
         if ev.end is not None:
             end[j] = int(round(ev.end / scenario.dt))
     return ramp, end
+
+
+def true_magnitudes(scenario, names, num_steps: int, magnitude_scale: float = 1.0) -> np.ndarray:
+    """``(N, F)`` the truth's magnitude of each fault at each step (0: absent).
+
+    The same breakpoints as the truth plan
+    (:func:`~uimm_jax.engine.truth.fault_breakpoints`: ramp staircases, ends).
+    """
+    onset, magnitude, _ = scenario_onsets(scenario, names, magnitude_scale)
+    ramp, end = scenario_ramps(scenario, names)
+    steps, levels = fault_breakpoints(onset, magnitude, ramp, end)
+    idx = np.searchsorted(steps, np.arange(num_steps), side="right")
+    return np.concatenate([np.zeros((1, len(list(names)))), levels])[idx]
 
 
 def scenario_onsets(scenario, names, magnitude_scale: float = 1.0):
