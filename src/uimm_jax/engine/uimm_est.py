@@ -33,7 +33,8 @@ On either, the winner's posterior goes to every model, except that the winner's 
 takes the old model 0's (the two swap meaning: after declaring ``j``, ``D_new - f_j`` is
 the old ``D``), the two swap probabilities, and the cache is rebuilt for the new sets.
 The cache's expansion point is re-centred whenever an estimate in use by a model of
-probability >= 1 % moves more than ``relin`` from it.  Rebuilds happen under ``lax.cond``: only on steps that need them.
+probability >= 1 % moves more than ``relin`` from it.  Rebuilds happen under
+``lax.cond``: only on steps that need them.
 """
 
 from __future__ import annotations
