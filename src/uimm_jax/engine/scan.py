@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from uimm_jax.engine.metrics import RunMetrics, update_metrics
+from uimm_jax.engine.metrics import EstMetrics, RunMetrics, update_est_metrics, update_metrics
 from uimm_jax.engine.truth import InputSignal, TruthPlan, input_value, truth_step
 
 __all__ = [
@@ -164,11 +164,14 @@ class SimCarry(NamedTuple):
         x: ``(n, B)`` truth state.
         diag: the diagnoser's :class:`~uimm_jax.engine.uimm.DiagState`.
         metrics: the :class:`~uimm_jax.engine.metrics.RunMetrics`.
+        est: the :class:`~uimm_jax.engine.metrics.EstMetrics` of a size-estimating
+            diagnoser, else ``None``.
     """
 
     x: jax.Array
     diag: Any
     metrics: RunMetrics
+    est: EstMetrics | None = None
 
 
 def diagnose_scan(diag, p: int, params, carry: SimCarry, ks, us, xs, ys, codes) -> SimCarry:
@@ -189,7 +192,12 @@ def diagnose_scan(diag, p: int, params, carry: SimCarry, ks, us, xs, ys, codes) 
             x,
             info.step.health,
         )
-        return SimCarry(c.x, st, m), None
+        e = c.est
+        if e is not None:
+            e = update_est_metrics(
+                e, k, c.diag.declared, st.declared, code, info.magnitude, info.magnitude_sd
+            )
+        return SimCarry(c.x, st, m, e), None
 
     carry, _ = jax.lax.scan(body, carry, (ks, us, xs, ys, codes))
     return carry

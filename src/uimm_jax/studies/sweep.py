@@ -57,9 +57,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from uimm_jax.engine.metrics import RunMetrics, init_metrics
+from uimm_jax.engine.metrics import RunMetrics, init_est_metrics, init_metrics
 from uimm_jax.engine.scan import SimCarry, scan_chunked, simulate_diagnose
 from uimm_jax.engine.truth import RAMP_STAIRS, TruthPlan, run_keys
+from uimm_jax.engine.uimm_est import UIMMEstDiagnoser
 from uimm_jax.scenario.sweep import FAULT_FREE, CaseSpec, SweepSpec, sweep_spec
 from uimm_jax.studies.run import RunSetup, setup_scenario
 from uimm_jax.studies.sweep_outputs import Cell, SweepResult, cell_summary
@@ -202,6 +203,11 @@ def batch_inputs(
         x=jnp.zeros((n, B), dtype),
         diag=_broadcast_state(setup.init_state, B),
         metrics=init_metrics(B, scenario.num_faults, n, dtype),
+        est=(
+            init_est_metrics(B, scenario.num_faults, dtype)
+            if isinstance(setup.diagnoser, UIMMEstDiagnoser)
+            else None
+        ),
     )
     return plan, jnp.asarray(keys), carry
 
@@ -276,7 +282,16 @@ def _fetch(tree):
 
 
 def run_batch(
-    setup: RunSetup, plan, keys, carry, num_steps: int, chunk: int, *, mesh=None, progress=None
+    setup: RunSetup,
+    plan,
+    keys,
+    carry,
+    num_steps: int,
+    chunk: int,
+    *,
+    mesh=None,
+    progress=None,
+    est_out: list | None = None,
 ) -> RunMetrics:
     """Scan one batch over all steps (chunked); return its :class:`RunMetrics` on the host.
 
@@ -289,6 +304,8 @@ def run_batch(
         chunk: time steps per compiled chunk.
         mesh: optional ``jax.sharding.Mesh`` with a ``"runs"`` axis to shard the runs over.
         progress: optional ``(done, total, elapsed)`` callback of :func:`scan_chunked`.
+        est_out: optional list; the batch's host
+            :class:`~uimm_jax.engine.metrics.EstMetrics` (or ``None``) is appended.
     """
     diag, params, signal = setup.diagnoser, setup.params, setup.signal
     dt, p = float(setup.scenario.dt), setup.scenario.plant.input_dim
@@ -312,6 +329,8 @@ def run_batch(
     carry, _ = scan_chunked(
         run, carry, num_steps, chunk=chunk, progress=progress, keep_outputs=False
     )
+    if est_out is not None:
+        est_out.append(None if carry.est is None else _fetch(carry.est))
     return _fetch(carry.metrics)
 
 
@@ -468,6 +487,14 @@ def run_sweep(
     correct = np.zeros((C, R), np.int64)
     sq_err = np.zeros((C, R, n))
     health = np.zeros((C, R), np.int32)
+    est_arr = {
+        "retract_step": np.full((C, R, F), -1, np.int32),
+        "declarations": np.zeros((C, R, F), np.int32),
+        "false_count": np.zeros((C, R), np.int32),
+        "magnitude": np.full((C, R, F), np.nan),
+        "magnitude_sd": np.full((C, R, F), np.nan),
+    }
+    any_est = False
 
     # Batches: as few as ``batch`` allows, of equal sizes, a multiple of LANES per device.
     jobs_per_method = R * (C // len(spec.methods))
@@ -507,13 +534,21 @@ def run_sweep(
             cb = None
             if report is not None:
                 cb = functools.partial(_report_chunk, report, label, done_steps, B)
-            m = run_batch(setup, plan, keys, carry, N, chunk_len, mesh=mesh, progress=cb)
+            got: list = []
+            m = run_batch(
+                setup, plan, keys, carry, N, chunk_len, mesh=mesh, progress=cb, est_out=got
+            )
             done_steps += B * N
             c, r = ci[:real], ri[:real]
             decl_step[c, r] = m.decl_step.T[:real]
             correct[c, r] = m.correct[:real]
             sq_err[c, r] = m.sq_err[:, :real].T
             health[c, r] = m.health[:real]
+            if got[0] is not None:
+                any_est = True
+                for name, arr in est_arr.items():
+                    v = np.asarray(getattr(got[0], name))
+                    arr[c, r] = (v.T if v.ndim == 2 else v)[:real]
     if report is not None and done_steps < total:
         report("done", total)
     result = SweepResult(
@@ -530,6 +565,9 @@ def run_sweep(
         correct_samples=correct,
         sq_err=sq_err,
         health=health,
+        true_magnitude=mag_arr,
+        end_step=end_arr,
+        estimates=est_arr if any_est else None,
         runtime_s=time.perf_counter() - t_start,
         devices=nd,
         batch=B,
