@@ -73,7 +73,7 @@ class EstSettings(NamedTuple):
         relin: re-centre the expansion when an estimate moves this far from it.
     """
 
-    walk: float = 1e-4
+    walk: float = 3e-4
     prior_mean: float = 1.0
     prior_sd: float = 1.0
     floor_sd: float = 0.0
