@@ -186,3 +186,29 @@ def test_uimm_est_retracts_a_fault_that_ends():
     on = np.flatnonzero(codes & (1 << j))
     assert on.size and 2000 <= on[0] < 2200  # declared within 20 ms of the onset
     assert on[-1] >= 4500 and codes[-1] == 0  # retracted after the end, nothing else left
+
+
+def test_sweep_reports_sizes_and_retractions_of_uimm_est():
+    from uimm_jax.studies.sweep import run_sweep
+
+    sc = parse_scenario(short_dict(2, duration=0.5, events=(0.1, 0.3)))
+    case = {
+        "name": "intermittent",
+        "events": [{"fault": "air_in_oil", "time": [0.1, 0.15], "duration": [0.1, 0.2]}],
+    }
+    steady = {"name": "steady", "events": [{"fault": "air_in_oil", "time": 0.1}]}
+    with pytest.warns(Warning):
+        res = run_sweep(sc, runs=16, methods=["uimm-est"], magnitudes=[2.0], cases=[case, steady])
+    est = res.estimates
+    by_case = {c.case: c.index for c in res.cells}
+    i = by_case["intermittent"]
+    end = res.end_step[i][:, 2]
+    assert np.all((end > res.onset_step[i][:, 2]) & (end - res.onset_step[i][:, 2] <= 2000))
+    s = res.summaries[i]
+    ok = est["retract_step"][i][:, 2] >= end
+    assert s["retraction_probability"]["air_in_oil"] == pytest.approx(ok.mean())
+    assert s["retraction_probability"]["air_in_oil"] >= 0.9
+    st = res.summaries[by_case["steady"]]
+    assert st["magnitude_mare"]["air_in_oil"] < 0.05
+    assert 0.0 <= st["magnitude_coverage"]["air_in_oil"] <= 1.0
+    assert res.summaries[by_case["fault-free"]]["false_declarations_all"] == 0

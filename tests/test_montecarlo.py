@@ -154,7 +154,7 @@ def test_spec_defaults_from_scenario():
         ({"runs": 0}, "[sweep].runs", ">= 1"),
         ({"runs": 2.5}, "[sweep].runs", "integer"),
         ({"rusn": 3}, "[sweep].rusn", "unknown key"),
-        ({"methods": ["ukf"]}, "[sweep].methods[0]", "'uimm' or 'imm'"),
+        ({"methods": ["ukf"]}, "[sweep].methods[0]", "must be one of uimm, imm, uimm-est"),
         ({"methods": ["uimm", "uimm"]}, "[sweep].methods", "repeated"),
         ({"magnitudes": [1.0, -0.5]}, "[sweep].magnitudes[1]", "> 0"),
         ({"noise_scales": []}, "[sweep].noise_scales", "non-empty"),
