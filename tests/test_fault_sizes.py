@@ -31,15 +31,16 @@ def test_fault_table_refuses_a_log_parameter_that_is_not_positive():
 def test_breakpoints_abrupt_ramp_and_end():
     steps, lv = fault_breakpoints([10, -1], [2.0, 1.0])
     assert steps.tolist() == [10] and lv.tolist() == [[2.0, 0.0]]
-    steps, lv = fault_breakpoints([100, -1], [2.0, 1.0], ramp=[64, 0])
-    assert len(steps) == RAMP_STAIRS + 1 and steps[-1] == 164
-    mid = (np.arange(RAMP_STAIRS) + 0.5) / RAMP_STAIRS * 2.0
+    S, L = RAMP_STAIRS, 2 * RAMP_STAIRS  # a ramp of L steps
+    steps, lv = fault_breakpoints([100, -1], [2.0, 1.0], ramp=[L, 0])
+    assert len(steps) == S + 1 and steps[-1] == 100 + L
+    mid = (np.arange(S) + 0.5) / S * 2.0
     np.testing.assert_allclose(lv[:-1, 0], mid)
     assert lv[-1, 0] == 2.0
     # every stair is within magnitude / (2 S) of the linear ramp over its steps
-    for k in range(100, 164):
+    for k in range(100, 100 + L):
         e = np.searchsorted(steps, k, side="right") - 1
-        assert abs(lv[e, 0] - 2.0 * (k - 100) / 64) <= 2.0 / (2 * RAMP_STAIRS) + 1e-12
+        assert abs(lv[e, 0] - 2.0 * (k - 100) / L) <= 2.0 / (2 * S) + 1e-12
     # an end inside the ramp cuts it and returns the fault to nominal
     steps, lv = fault_breakpoints([100], [1.0], ramp=[64], end=[120])
     assert steps[-1] == 120 and lv[-1, 0] == 0.0 and np.all(steps <= 120)

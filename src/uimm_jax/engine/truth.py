@@ -56,8 +56,8 @@ INPUT_KINDS = ("sine", "square", "step", "constant")
 NEVER = np.iinfo(np.int32).max
 """Event step of a padding phase: never reached."""
 
-RAMP_STAIRS = 32
-"""Stairs of a ramp's staircase (fewer when the ramp is shorter than 32 samples)."""
+RAMP_STAIRS = 256
+"""Stairs of a ramp's staircase (fewer when the ramp is shorter than 256 samples)."""
 
 _PREPARE_WIDTH = 16  # thetas per compiled ``prepare`` call (one compiled shape)
 
