@@ -213,3 +213,66 @@ def test_sweep_reports_sizes_and_retractions_of_uimm_est():
     assert st["magnitude_mare"]["air_in_oil"] < 0.05
     assert 0.0 <= st["magnitude_coverage"]["air_in_oil"] <= 1.0
     assert res.summaries[by_case["fault-free"]]["false_declarations_all"] == 0
+
+
+def test_user_plant_sensor_biases_step_ramp_and_end_are_sized_and_recognised():
+    """The issue's user-plant line: additive sensor-bias faults, a step, a ramp, an end."""
+    import jax.numpy as jnp
+
+    import uimm_jax
+    from uimm_jax import Fault, LinearPlant
+
+    def matrices(p):
+        A = jnp.array([[0.99, 0.05, 0.0], [-0.05, 0.98, 0.0], [0.0, 0.0, 0.97]])
+        B = jnp.array([[0.0], [0.1], [0.05]])
+        return A, B, jnp.eye(3), jnp.stack([p["b0"], p["b1"], p["b2"]])
+
+    plant = LinearPlant(
+        name="biased_sensors",
+        state_names=("a", "b", "c"),
+        input_names=("u",),
+        output_names=("a", "b", "c"),
+        param_names=("b0", "b1", "b2"),
+        nominal_values=(0.0, 0.0, 0.0),
+        faults=(
+            Fault("bias0", {"b0": 0.1}),
+            Fault("bias1", {"b1": 0.1}),
+            Fault("bias2", {"b2": 0.1}),
+        ),
+        time="discrete",
+        matrices=matrices,
+    )
+    uimm_jax.register_plant(plant, overwrite=True)
+    d = {
+        "name": "biases",
+        "duration": 2.0,
+        "dt": 1e-3,
+        "seed": 0,
+        "plant": {"model": "biased_sensors"},
+        "input": {"kind": "sine", "amplitude": 1.0, "frequency": 2.0},
+        "noise": {"process": [1e-6] * 3, "measurement": [1e-4] * 3},  # sd 0.01: a bias of 1 = 10 sd
+        "faults": {"bias0": {}, "bias1": {}, "bias2": {}},
+        "events": [
+            {"time": 0.3, "fault": "bias0", "magnitude": 1.5},  # a step
+            {"time": 0.8, "fault": "bias1", "magnitude": 0.7, "ramp": 0.05},  # a ramp
+            {"time": 1.2, "fault": "bias2", "magnitude": 1.2, "end": 1.6},  # a bias that ends
+        ],
+        "filter": {
+            "method": "uimm-est",
+            "stay": 0.999,
+            "initial_mean": [0.0, 0.0, 0.0],
+            "initial_cov": 1e-2,
+            "decision": {"threshold": 0.99, "hold": 10},
+        },
+    }
+    res = uimm_jax.run_scenario(parse_scenario(d), seed=3)
+    s = res.summary
+    assert s["false_declarations"] == 0
+    assert [d["fault"] for d in s["declarations"]] == ["bias0", "bias1", "bias2"]
+    truth = {"bias0": 1.5, "bias1": 0.7, "bias2": 1.2}
+    for d_ in s["declarations"]:  # at the end of the run (bias2: before its retraction)
+        assert d_["magnitude"] == pytest.approx(truth[d_["fault"]], rel=0.10)
+        lo, hi = d_["magnitude_ci"]
+        assert lo < d_["magnitude"] < hi
+    assert [(r["fault"], r["correct"]) for r in s["retractions"]] == [("bias2", True)]
+    assert s["mode_accuracy"] >= 0.95

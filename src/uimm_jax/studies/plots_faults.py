@@ -73,11 +73,25 @@ def plot_fault_parameters(
         hi = phys(m + Z95 * magnitude_sd[sl, j])
         on = (codes[sl] & (1 << j)) > 0
         est = phys(m)
-        ax.fill_between(t[sl], np.minimum(lo, hi), np.maximum(lo, hi), where=on, color="C1",
-                        alpha=0.25, lw=0, label="95 % interval")
+        ax.fill_between(
+            t[sl],
+            np.minimum(lo, hi),
+            np.maximum(lo, hi),
+            where=on,
+            color="C1",
+            alpha=0.25,
+            lw=0,
+            label="95 % interval",
+        )
         ax.plot(t[sl], np.where(on, est, np.nan), color="C1", lw=1.2, label="estimate")
-        ax.plot(t[sl], np.where(on, np.nan, est), color="C1", lw=0.4, alpha=0.4,
-                label="hypothesis (not declared)")
+        ax.plot(
+            t[sl],
+            np.where(on, np.nan, est),
+            color="C1",
+            lw=0.4,
+            alpha=0.4,
+            label="hypothesis (not declared)",
+        )
         ax.plot(t[sl], phys(true_magnitude[sl, j]), color="k", lw=1.2, ls="--", label="truth")
         ax.set_ylabel(f"{param_names[q]} ({table.names[j]})", fontsize=9)
         ax.grid(True, alpha=0.3)

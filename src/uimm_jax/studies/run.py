@@ -420,14 +420,16 @@ def _rates(N: int, runtime_s: float, chunk_timings: list | None) -> dict[str, An
     return {"steps_per_s": float(N / runtime_s) if runtime_s > 0 else None, "compile_s": None}
 
 
-def decision_changes(outputs: dict, truth_codes, names, dt: float) -> dict[str, Any]:
+def decision_changes(outputs: dict, truth_codes, names, dt: float, hold: int = 0) -> dict[str, Any]:
     """Declarations and retractions of a run from its declared-set codes, with sizes.
 
     Every switch on of fault ``j`` at step ``k`` is a declaration (*correct* when ``j`` is
     in the truth at ``k``), every switch off a retraction (*correct* when ``j`` is no longer
     in the truth: the fault had ended).  With per-step ``magnitude`` and ``magnitude_sd``
     outputs (a size-estimating diagnoser) a declaration carries the estimate and its 95 %
-    interval at the end of the run (at the last step before its retraction if retracted).
+    interval at the end of the run; if it was retracted, ``hold + 1`` samples before the
+    retraction, when the retraction rule began to count (after that the estimate follows
+    the fault's end).
 
     Returns:
         ``{"declarations": [...], "retractions": [...]}``; the declarations only when the
@@ -447,7 +449,7 @@ def decision_changes(outputs: dict, truth_codes, names, dt: float) -> dict[str, 
             entry = {"fault": name, "time": float((k + 1) * dt), "correct": bool(truth[k] & bit)}
             if mag is not None:
                 later = off[off > k]
-                last = int(later[0]) - 1 if later.size else len(codes) - 1
+                last = max(int(later[0]) - 1 - hold, k) if later.size else len(codes) - 1
                 m, s_ = float(mag[last, j]), float(sd[last, j])
                 entry |= {"magnitude": m, "magnitude_ci": [m - Z95 * s_, m + Z95 * s_]}
             decl.append(entry)
@@ -492,7 +494,7 @@ def summarize(
     found = metrics.detected(onset, decl_step)
     decl = metrics.declaration_list(decl_step, names, dt)
     is_false = [bool(false_mask[names.index(d["fault"])]) for d in decl]
-    changes = decision_changes(outputs, truth_codes, names, dt)
+    changes = decision_changes(outputs, truth_codes, names, dt, int(sc.filter.decision.hold))
     if "declarations" in changes:  # a diagnoser that retracts: every switch on counts
         decl = changes["declarations"]
         is_false = [not d["correct"] for d in decl]
