@@ -20,7 +20,7 @@ def register(sub) -> None:
     r = sub.add_parser("run", help="simulate a scenario and diagnose it")
     r.add_argument("scenario", help="scenario TOML file (see docs/scenarios.md)")
     r.add_argument("--out", default="out", help="output directory (default: out)")
-    r.add_argument("--method", choices=("uimm", "imm"), help="override [filter].method")
+    r.add_argument("--method", choices=("uimm", "imm", "uimm-est"), help="override [filter].method")
     r.add_argument("--seed", type=int, help="override the scenario's seed")
     r.add_argument(
         "--measurements",
