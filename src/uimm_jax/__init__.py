@@ -21,7 +21,8 @@ apply_recommended_xla_flags()  # before anything below imports JAX; no-op once i
 from uimm_jax.engine.bank import FaultTable, fault_table
 from uimm_jax.engine.imm import IMMParams, IMMState, StepInfo, imm_step
 from uimm_jax.engine.kalman import ekf_predict, ekf_update
-from uimm_jax.engine.uimm import DiagInfo, Diagnoser, DiagParams, DiagState, build_diagnoser
+from uimm_jax.engine.uimm import DiagInfo, Diagnoser, DiagParams, DiagState
+from uimm_jax.engine.uimm_est import build_diagnoser
 from uimm_jax.errors import ScenarioError, UIMMWarning
 from uimm_jax.plants.base import Fault, LinearPlant, NonlinearPlant
 from uimm_jax.plants.registry import get_plant, list_plants, register_plant

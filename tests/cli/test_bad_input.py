@@ -176,13 +176,18 @@ def test_a_diverging_truth_is_an_error_not_missing_data():
             run_scenario(parse_scenario(d))
 
 
-def test_sweep_magnitudes_that_make_a_parameter_negative_are_refused():
+def test_large_magnitudes_of_a_positive_parameter_stay_positive_on_the_log_scale():
     from uimm_jax.scenario.sweep import sweep_spec
+    from uimm_jax.studies.run import setup_scenario
 
     sc = short_scenario(sim=2, duration=0.01, events=(0.002, 0.004))  # air in oil: Eh drops
-    sweep_spec(sc, runs=2, magnitudes=[1.0, 1.1])
-    with pytest.raises(Exception, match=r"magnitude 2\.0 .*air_in_oil.*Eh must stay > 0"):
-        sweep_spec(sc, runs=2, magnitudes=[1.0, 2.0])
+    sweep_spec(sc, runs=2, magnitudes=[1.0, 2.0, 3.0])  # linear: 6e6 - 2 * 5.4e6 < 0
+    table = setup_scenario(sc).table
+    q = sc.plant.param_names.index("Eh")
+    j = table.names.index("air_in_oil")
+    for a in (0.5, 1.0, 2.0, 3.0):
+        th = table.theta_numpy(np.eye(3, dtype=bool)[j], np.full(3, a))
+        assert th[q] == pytest.approx(6e6 * 0.1**a, rel=1e-12)
 
 
 # --------------------------------------------------------------------------------------

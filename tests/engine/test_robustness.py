@@ -133,7 +133,9 @@ def test_scenario_entry_points_refuse_bad_arguments(short, setup):
         setup_scenario("scenarios/paper_sim1_tuned.toml")
     with pytest.raises(TypeError, match=r"expected a Scenario, got dict; .*parse_scenario"):
         run_scenario({"name": "x"})
-    with pytest.raises(ValueError, match=r"method: expected 'uimm' or 'imm', got 'ukf'"):
+    with pytest.raises(
+        ValueError, match=r"method: expected 'uimm', 'imm' or 'uimm-est', got 'ukf'"
+    ):
         setup_scenario(short, "ukf")
     with pytest.raises(ValueError, match=r"magnitude_scale: expected a finite number > 0"):
         setup_scenario(short, magnitude_scale=float("nan"))

@@ -591,9 +591,9 @@ MALFORMED = {
     ),
     "bad_plant_param_not_positive.toml": ("\\[plant\\.params\\]\\.mh", "mh must be > 0.*got 0\\.0"),
     "bad_fault_value_not_positive.toml": ("\\[faults\\.air_in_oil\\]\\.Eh", "Eh must be > 0"),
-    "bad_event_magnitude_param_not_positive.toml": (
-        "\\[\\[events\\]\\]\\[0\\]\\.magnitude",
-        "takes Eh from 6000000\\.0 to -4800000\\.0.*must stay > 0",
+    "bad_event_end_before_onset.toml": (
+        "\\[\\[events\\]\\]\\[0\\]\\.end",
+        "must be in \\(0\\.5, 1\\.0\\)",
     ),
     "bad_initial_mode_probs_overflow.toml": (
         "\\[filter\\]\\.initial_mode_probs",

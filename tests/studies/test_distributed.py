@@ -182,10 +182,10 @@ def test_cli_magnitudes_error_names_the_item(value, words, capsys):
 
 
 def test_cli_duration_scales_events_and_cases():
-    from uimm_jax.cli.sweep import _with_duration
+    from uimm_jax.cli._args import with_duration
 
     sc = small_scenario()
-    half = _with_duration(sc, 0.1)
+    half = with_duration(sc, 0.1, "--duration")
     assert half.num_steps == sc.num_steps // 2
     assert [e.time for e in half.events] == [e.time / 2 for e in sc.events]
     want = [
@@ -194,7 +194,7 @@ def test_cli_duration_scales_events_and_cases():
         for case in sc.sweep["cases"]
     ]  # fmt: skip
     assert [[ev["time"] for ev in case["events"]] for case in half.sweep["cases"]] == want
-    assert _with_duration(sc, 0.2) is sc
+    assert with_duration(sc, 0.2, "--duration") is sc
 
 
 def test_cli_duration_must_be_positive(tmp_path, capsys):

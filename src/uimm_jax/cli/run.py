@@ -20,7 +20,7 @@ def register(sub) -> None:
     r = sub.add_parser("run", help="simulate a scenario and diagnose it")
     r.add_argument("scenario", help="scenario TOML file (see docs/scenarios.md)")
     r.add_argument("--out", default="out", help="output directory (default: out)")
-    r.add_argument("--method", choices=("uimm", "imm"), help="override [filter].method")
+    r.add_argument("--method", choices=("uimm", "imm", "uimm-est"), help="override [filter].method")
     r.add_argument("--seed", type=int, help="override the scenario's seed")
     r.add_argument(
         "--measurements",
@@ -116,6 +116,21 @@ def _write_figures(result, out: Path) -> list[str]:
         ),
         "model_count.png": plots.plot_model_count(max(10, diag.num_faults)),
     }
+    if "magnitude" in o:
+        from uimm_jax.studies.plots_faults import plot_fault_parameters
+        from uimm_jax.studies.truth import true_magnitudes
+
+        names = list(diag.table.names)
+        figs["fault_parameters.png"] = plot_fault_parameters(
+            t,
+            o["magnitude"],
+            o["magnitude_sd"],
+            true_magnitudes(sc, names, len(t)),
+            np.asarray(o["declared"]),
+            diag.table,
+            list(sc.plant.param_names),
+            title=f"Estimated fault parameters vs truth - {title}",
+        )
     written = []
     for name, fig in figs.items():
         plots.save_figure(fig, out / name)

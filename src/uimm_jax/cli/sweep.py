@@ -71,6 +71,9 @@ def register(subparsers) -> None:
     s.add_argument(
         "--magnitudes", type=_floats, help="comma-separated magnitude scales, e.g. 0.25,0.5,1"
     )
+    s.add_argument(
+        "--ramps", type=_floats, help="comma-separated ramp lengths (s) replacing the events' ramps"
+    )
     s.add_argument("--noise-scales", type=_floats, help="comma-separated truth-noise scales")
     s.add_argument("--seed", type=int, help="root seed (default: [sweep].seed or the scenario's)")
     s.add_argument("--batch", type=int, help="runs per compiled batch (default 128)")
@@ -200,6 +203,7 @@ def _cmd_sweep(args) -> int:
     opts = dict(
         runs=args.runs,
         methods=args.methods,
+        ramps=args.ramps,
         magnitudes=args.magnitudes,
         noise_scales=args.noise_scales,
         fault_free=args.fault_free,

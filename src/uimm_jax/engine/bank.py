@@ -6,6 +6,14 @@ fault ``j`` changes parameter ``q`` and ``values[j, q]`` is its fault value.  A 
 
     theta(S) = where(any_j S_j & mask_j, values, nominal)            (masked array update)
 
+**Fault magnitude** (one meaning for every value ``a > 0``; ``a = 1`` is the library's
+fault value ``v``, ``a = 0`` the nominal ``v0``): a parameter on the *log scale* (the
+plant's ``positive_params``: masses, moduli, gains that must stay > 0) takes
+``v0 (v / v0)^a`` -- ``a = 2`` is "twice as far" in ratio and never reaches zero -- and
+any other parameter (biases, leakages that may be zero) takes ``v0 + a (v - v0)``
+(:func:`param_at_magnitude`).  The truth (:mod:`uimm_jax.engine.truth`) and the
+size-estimating diagnoser (:mod:`uimm_jax.engine.uimm_est`) use this one rule.
+
 * UIMM (paper section 3.2, design.md section 3): with the declared set ``D``, the bank is
   ``[D, D + f_1, ..., D + f_F]`` -- ``F + 1`` models whatever ``D`` is.
 * Combinatorial IMM (paper section 3.3): all ``2^F`` subsets, model ``s`` having the faults
@@ -25,7 +33,9 @@ __all__ = [
     "FaultTable",
     "combinatorial_sets",
     "fault_table",
+    "param_at_magnitude",
     "set_codes",
+    "thetas_for_magnitudes",
     "thetas_for_sets",
     "uimm_sets",
 ]
@@ -39,12 +49,15 @@ class FaultTable(NamedTuple):
         nominal: ``(P,)`` nominal parameters.
         mask: ``(F, P)`` bool, which parameters each fault changes.
         values: ``(F, P)`` fault values (nominal where not changed).
+        log_scale: ``(P,)`` bool, parameters whose magnitude scale is logarithmic
+            (:func:`param_at_magnitude`); ``None``: every parameter is linear.
     """
 
     names: tuple[str, ...]
     nominal: np.ndarray
     mask: np.ndarray
     values: np.ndarray
+    log_scale: np.ndarray | None = None
 
     @property
     def num_faults(self) -> int:
@@ -54,20 +67,59 @@ class FaultTable(NamedTuple):
     def theta_numpy(self, fault_set: Sequence[bool], magnitudes=None) -> np.ndarray:
         """Parameters of one fault set on the host, with optional per-fault magnitudes.
 
-        A magnitude ``a`` places the parameter at ``nominal + a (fault - nominal)``.
+        A magnitude ``a`` places the parameter at :func:`param_at_magnitude`.
         """
         th = self.nominal.copy()
         for j, on in enumerate(fault_set):
             if on:
                 a = 1.0 if magnitudes is None else float(magnitudes[j])
-                th = np.where(self.mask[j], self.nominal + a * (self.values[j] - self.nominal), th)
+                moved = param_at_magnitude(self.nominal, self.values[j], a, self.log_mask, np)
+                th = np.where(self.mask[j], moved, th)
         return th
+
+    @property
+    def log_mask(self) -> np.ndarray:
+        """``(P,)`` bool, the parameters on the log scale (all false when unset)."""
+        if self.log_scale is None:
+            return np.zeros(len(self.nominal), bool)
+        return np.asarray(self.log_scale, bool)
+
+
+def param_at_magnitude(nominal, value, magnitude, log_scale, xp=jnp):
+    """A fault parameter at magnitude ``a`` (module doc): the one rule of truth and filter.
+
+    Args:
+        nominal: nominal value(s) ``v0``.
+        value: the library's fault value(s) ``v`` (magnitude 1).
+        magnitude: ``a`` (broadcasts).
+        log_scale: bool (broadcasts): ``v0 (v / v0)^a`` where true (``v0, v > 0``), else
+            ``v0 + a (v - v0)``.
+        xp: ``numpy`` (exactly ``v`` at magnitude 1) or ``jax.numpy`` (differentiable
+            in ``magnitude``: the filter's Jacobians go through it).
+
+    Returns:
+        The parameter value(s); ``magnitude`` 0 gives ``v0`` and 1 gives ``v``.
+    """
+    log_scale = xp.asarray(log_scale, bool)
+    safe0 = xp.where(log_scale, nominal, 1.0)
+    ratio = xp.where(log_scale, value / safe0, 1.0)
+    logv = safe0 * xp.exp(magnitude * xp.log(ratio))
+    moved = xp.where(log_scale, logv, nominal + magnitude * (value - nominal))
+    if xp is np:  # the truth: the library value exactly, bit for bit, at magnitude 1
+        moved = np.where(magnitude == 1, value, moved)
+    return moved
 
 
 def fault_table(
-    param_names: Sequence[str], nominal: np.ndarray, faults: Mapping[str, Mapping[str, float]]
+    param_names: Sequence[str],
+    nominal: np.ndarray,
+    faults: Mapping[str, Mapping[str, float]],
+    log_params: Sequence[str] = (),
 ) -> FaultTable:
     """Stack a fault library ``{fault: {param: value}}`` into a :class:`FaultTable`.
+
+    ``log_params`` names the parameters on the log magnitude scale (the plant's
+    ``positive_params``; :func:`param_at_magnitude`).
 
     Raises:
         ValueError: on an unknown parameter, or two faults that change the same parameter
@@ -94,7 +146,15 @@ def fault_table(
             f"faults {who} all change parameter {param_names[q]!r}; each parameter "
             "may belong to one fault only"
         )
-    return FaultTable(names, np.asarray(nominal, np.float64), mask, values)
+    log_scale = np.array([p in tuple(log_params) for p in param_names], bool)
+    bad = log_scale[None] & mask & ~((values > 0) & (np.asarray(nominal)[None] > 0))
+    if np.any(bad):
+        j, q = (int(i[0]) for i in np.nonzero(bad))
+        raise ValueError(
+            f"fault {names[j]!r}: parameter {param_names[q]!r} is on the log magnitude scale "
+            "(a positive parameter) but its nominal or fault value is not > 0"
+        )
+    return FaultTable(names, np.asarray(nominal, np.float64), mask, values, log_scale)
 
 
 def uimm_sets(declared: jax.Array) -> jax.Array:
@@ -138,3 +198,30 @@ def thetas_for_sets(table: FaultTable, sets: jax.Array, dtype=None) -> jax.Array
     touch = sets[:, None] & mask  # (F, P, *batch)
     val = jnp.sum(jnp.where(touch, values, 0.0), axis=0)
     return jnp.where(jnp.any(touch, axis=0), val, nominal)
+
+
+def thetas_for_magnitudes(
+    table: FaultTable, sets: jax.Array, magnitudes: jax.Array, dtype=None
+) -> jax.Array:
+    """Parameter vectors of fault sets at given magnitudes (differentiable in them).
+
+    Args:
+        table: the fault table.
+        sets: ``(F, *batch)`` boolean fault sets.
+        magnitudes: ``(F, *batch)`` magnitude of each fault (used where the set holds it).
+        dtype: output dtype (default: the default float type).
+
+    Returns:
+        ``(P, *batch)``: each parameter of a fault in the set at :func:`param_at_magnitude`,
+        the others nominal.
+    """
+    dtype = dtype or jnp.asarray(0.0).dtype
+    tail = (1,) * (sets.ndim - 1)
+    mask = np.asarray(table.mask).reshape(table.mask.shape + tail)  # (F, P, 1...)
+    values = jnp.asarray(table.values, dtype).reshape(table.values.shape + tail)
+    nominal = jnp.asarray(table.nominal, dtype).reshape((1,) + table.nominal.shape + tail)
+    log_scale = table.log_mask.reshape((1, -1) + tail)
+    moved = param_at_magnitude(nominal, values, magnitudes[:, None], log_scale)  # (F, P, *b)
+    touch = sets[:, None] & mask
+    val = jnp.sum(jnp.where(touch, moved, 0.0), axis=0)
+    return jnp.where(jnp.any(touch, axis=0), val, nominal[0])

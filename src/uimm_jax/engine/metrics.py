@@ -60,6 +60,7 @@ from uimm_jax.engine.imm import (
 )
 
 __all__ = [
+    "EstMetrics",
     "HEALTH_FLAGS",
     "FDICounts",
     "RunMetrics",
@@ -72,12 +73,14 @@ __all__ = [
     "fdi_terms",
     "first_steps",
     "health_counts",
+    "init_est_metrics",
     "init_metrics",
     "isolated",
     "mode_accuracy",
     "new_declarations",
     "sample_time",
     "true_set_probability",
+    "update_est_metrics",
     "update_metrics",
     "wilson_interval",
 ]
@@ -202,7 +205,9 @@ def init_metrics(runs: int, num_faults: int, state_dim: int, dtype) -> RunMetric
 
 
 def new_declarations(decl_step: jax.Array, before: jax.Array, after: jax.Array, k) -> jax.Array:
-    """``decl_step`` with step ``k`` recorded for the faults declared at this step.
+    """``decl_step`` with step ``k`` recorded for the faults first declared at this step.
+
+    A diagnoser that retracts may declare a fault again: the first declaration counts.
 
     Args:
         decl_step: int32 declaration steps so far, shaped like ``before``.
@@ -210,7 +215,7 @@ def new_declarations(decl_step: jax.Array, before: jax.Array, after: jax.Array, 
         after: bool declared set after it.
         k: the step (scalar int).
     """
-    return jnp.where(after & ~before, k, decl_step)
+    return jnp.where(after & ~before & (decl_step < 0), k, decl_step)
 
 
 def update_metrics(
@@ -239,6 +244,50 @@ def update_metrics(
         sq_err=m.sq_err + err * err,
         health=m.health | health,
         fdi=FDICounts(*(a + t.astype(a.dtype) for a, t in zip(m.fdi, terms, strict=True))),
+    )
+
+
+class EstMetrics(NamedTuple):
+    """Per-run accumulators of a diagnoser that estimates sizes and retracts (batch ``B``).
+
+    Attributes:
+        retract_step: ``(F, B)`` int32 step of the last retraction of each fault (-1).
+        declarations: ``(F, B)`` int32 number of times each fault was declared.
+        false_count: ``(B,)`` int32 declarations of a fault absent from the truth then.
+        magnitude: ``(F, B)`` estimated magnitude at the last step.
+        magnitude_sd: ``(F, B)`` its standard deviation.
+    """
+
+    retract_step: jax.Array
+    declarations: jax.Array
+    false_count: jax.Array
+    magnitude: jax.Array
+    magnitude_sd: jax.Array
+
+
+def init_est_metrics(runs: int, num_faults: int, dtype) -> EstMetrics:
+    """Empty :class:`EstMetrics` of ``runs`` runs."""
+    return EstMetrics(
+        retract_step=jnp.full((num_faults, runs), -1, jnp.int32),
+        declarations=jnp.zeros((num_faults, runs), jnp.int32),
+        false_count=jnp.zeros((runs,), jnp.int32),
+        magnitude=jnp.zeros((num_faults, runs), dtype),
+        magnitude_sd=jnp.zeros((num_faults, runs), dtype),
+    )
+
+
+def update_est_metrics(e: EstMetrics, k, before, after, code, magnitude, sd) -> EstMetrics:
+    """One step of the :class:`EstMetrics` (``before``/``after``: ``(F, B)`` declared sets)."""
+    F = before.shape[0]
+    bits = (code[None] >> jnp.arange(F, dtype=jnp.int32).reshape((F,) + (1,) * code.ndim)) & 1
+    present = bits > 0
+    on = after & ~before
+    return EstMetrics(
+        retract_step=jnp.where(before & ~after, k, e.retract_step),
+        declarations=e.declarations + on.astype(jnp.int32),
+        false_count=e.false_count + jnp.sum(on & ~present, axis=0).astype(jnp.int32),
+        magnitude=magnitude,
+        magnitude_sd=sd,
     )
 
 

@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from uimm_jax.engine.metrics import RunMetrics, update_metrics
+from uimm_jax.engine.metrics import EstMetrics, RunMetrics, update_est_metrics, update_metrics
 from uimm_jax.engine.truth import (
     InputSignal,
     TruthPlan,
@@ -39,6 +39,7 @@ from uimm_jax.engine.truth import (
 from uimm_jax.xla_flags import warn_if_slow
 
 __all__ = [
+    "ESTIMATE_OUTPUTS",
     "FILTER_OUTPUTS",
     "SimCarry",
     "as_batch_of_one",
@@ -53,6 +54,9 @@ __all__ = [
 
 FILTER_OUTPUTS = ("mode_probs", "mean", "recognised", "declared", "health")
 """Per-step outputs :func:`filter_chunk` keeps by default (``"cov"`` may be added)."""
+
+ESTIMATE_OUTPUTS = ("magnitude", "magnitude_sd")
+"""Per-step outputs of a size-estimating diagnoser (``(F,)`` estimate and its sd)."""
 
 
 def scan_chunked(
@@ -182,11 +186,14 @@ class SimCarry(NamedTuple):
         x: ``(n, B)`` truth state.
         diag: the diagnoser's :class:`~uimm_jax.engine.uimm.DiagState`.
         metrics: the :class:`~uimm_jax.engine.metrics.RunMetrics`.
+        est: the :class:`~uimm_jax.engine.metrics.EstMetrics` of a size-estimating
+            diagnoser, else ``None``.
     """
 
     x: jax.Array
     diag: Any
     metrics: RunMetrics
+    est: EstMetrics | None = None
 
 
 def diagnose_scan(diag, p: int, params, carry: SimCarry, ks, us, xs, ys, codes) -> SimCarry:
@@ -210,7 +217,12 @@ def diagnose_scan(diag, p: int, params, carry: SimCarry, ks, us, xs, ys, codes) 
             info.step.health,
             jnp.exp(lp),
         )
-        return SimCarry(c.x, st, m), None
+        e = c.est
+        if e is not None:
+            e = update_est_metrics(
+                e, k, c.diag.declared, st.declared, code, info.magnitude, info.magnitude_sd
+            )
+        return SimCarry(c.x, st, m, e), None
 
     carry, _ = jax.lax.scan(body, carry, (ks, us, xs, ys, codes))
     return carry
@@ -250,8 +262,8 @@ def filter_chunk(diag, params, state, k0, uy, outputs: tuple[str, ...] = FILTER_
         state: its :class:`~uimm_jax.engine.uimm.DiagState`.
         k0: first step of the chunk (unused; :func:`scan_chunked`'s signature).
         uy: ``(us (L, p), ys (L, m))``.
-        outputs: per-step outputs to keep, among :data:`FILTER_OUTPUTS` and ``"cov"``
-            (static).
+        outputs: per-step outputs to keep, among :data:`FILTER_OUTPUTS`, ``"cov"`` and,
+            for a size-estimating diagnoser, :data:`ESTIMATE_OUTPUTS` (static).
 
     Returns:
         ``(state, outputs)`` with the outputs in the order asked.
@@ -272,6 +284,8 @@ def filter_chunk(diag, params, state, k0, uy, outputs: tuple[str, ...] = FILTER_
             "declared": lambda: info.declared,
             "health": lambda: info.step.health,
             "cov": lambda: info.step.cov,
+            "magnitude": lambda: info.magnitude,
+            "magnitude_sd": lambda: info.magnitude_sd,
         }
         return st, tuple(avail[name]() for name in outputs)
 

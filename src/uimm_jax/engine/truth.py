@@ -1,10 +1,17 @@
 """The simulated truth: input signals, fault phases, per-run keys and the truth step.
 
 The truth is a piecewise-constant-parameter plant: phase 0 is nominal and each fault
-event ``(step, fault, magnitude)`` moves the parameters of that fault from nominal to
-``nominal + magnitude * (fault_value - nominal)`` from its step on (abrupt fault; faults
-accumulate).  Each phase is discretised once, before the loop (:func:`truth_plan`); inside
-the loop the phase is selected by counting the events already passed.
+event ``(step, fault, magnitude[, ramp, end])`` moves the parameters of that fault from
+nominal to their value at ``magnitude`` (:func:`uimm_jax.engine.bank.param_at_magnitude`:
+``nominal + a (fault - nominal)``, or ``nominal (fault / nominal)^a`` for a positive
+parameter) from its step on; faults accumulate.  A *ramp* (an incipient fault) grows the
+magnitude linearly from 0 at the onset to ``magnitude`` over ``ramp`` steps as a
+staircase of :data:`RAMP_STAIRS` equal stairs, each at the ramp's value at the stair's
+midpoint (so the truth's magnitude is never more than ``magnitude / (2 RAMP_STAIRS)``
+from the linear ramp; docs/faults.md measures what this costs in the states); an *end*
+step returns the fault's parameters to nominal (an intermittent or repaired fault).  Each
+phase is discretised once, before the loop (:func:`truth_plan`); inside the loop the phase
+is selected by counting the phase boundaries already passed and gathering its matrices.
 
 Noise is drawn inside the scan from ``fold_in(key, k)``, so step k's noise does not
 depend on how the run is chunked, and runs of a Monte Carlo batch use their own keys
@@ -32,6 +39,7 @@ __all__ = [
     "InputSignal",
     "NonFiniteTruth",
     "TruthPlan",
+    "fault_breakpoints",
     "finite_phases",
     "input_value",
     "noise_factor",
@@ -48,6 +56,9 @@ INPUT_KINDS = ("sine", "square", "step", "constant")
 
 NEVER = np.iinfo(np.int32).max
 """Event step of a padding phase: never reached."""
+
+RAMP_STAIRS = 256
+"""Stairs of a ramp's staircase (fewer when the ramp is shorter than 256 samples)."""
 
 _PREPARE_WIDTH = 16  # thetas per compiled ``prepare`` call (one compiled shape)
 
@@ -138,46 +149,92 @@ class TruthPlan(NamedTuple):
     Gr: jax.Array
 
 
-def plan_phases(table, onset: np.ndarray, magnitude: np.ndarray, num_phases: int):
-    """The phases of one run from the onset step and magnitude of each fault.
+def fault_breakpoints(onset, magnitude, ramp=None, end=None, stairs: int = RAMP_STAIRS):
+    """The steps at which the truth's fault magnitudes change, and the magnitudes after.
+
+    Args:
+        onset: ``(F,)`` onset step of each fault, negative if it does not occur.
+        magnitude: ``(F,)`` final magnitude of each fault.
+        ramp: optional ``(F,)`` ramp length in steps (0: abrupt).
+        end: optional ``(F,)`` step at which the fault disappears (negative: never).
+        stairs: stairs per ramp (at most one per step).
+
+    Returns:
+        ``(steps (E,) int64 increasing, levels (E, F))``: from ``steps[e]`` on, fault ``j``
+        has magnitude ``levels[e, j]`` (0 = absent); before ``steps[0]`` every fault is
+        absent.
+    """
+    onset = np.asarray(onset, np.int64)
+    F = onset.shape[0]
+    magnitude = np.broadcast_to(np.asarray(magnitude, np.float64), (F,))
+    ramp = np.zeros(F, np.int64) if ramp is None else np.asarray(ramp, np.int64)
+    end = np.full(F, -1, np.int64) if end is None else np.asarray(end, np.int64)
+    changes: dict[int, dict[int, float]] = {}
+    for j in range(F):
+        if onset[j] < 0:
+            continue
+        r = int(ramp[j])
+        s_count = max(1, min(int(stairs), r)) if r > 0 else 0
+        for i in range(s_count):  # stair i covers [onset + i r / S, onset + (i+1) r / S)
+            k = int(onset[j]) + (i * r) // s_count
+            changes.setdefault(k, {})[j] = magnitude[j] * (i + 0.5) / s_count
+        changes.setdefault(int(onset[j]) + r, {})[j] = magnitude[j]
+        if end[j] >= 0:
+            for k in [k for k in changes if k >= end[j] and j in changes[k]]:
+                del changes[k][j]
+            changes.setdefault(int(end[j]), {})[j] = 0.0
+    steps = sorted(k for k, v in changes.items() if v)
+    levels = np.zeros((len(steps), F))
+    cur = np.zeros(F)
+    for e, k in enumerate(steps):
+        for j, v in changes[k].items():
+            cur[j] = v
+        levels[e] = cur
+    return np.array(steps, np.int64), levels
+
+
+def plan_phases(
+    table,
+    onset: np.ndarray,
+    magnitude: np.ndarray,
+    num_phases: int,
+    ramp=None,
+    end=None,
+    stairs: int = RAMP_STAIRS,
+):
+    """The phases of one run from the onset step, magnitude, ramp and end of each fault.
 
     Args:
         table: the :class:`~uimm_jax.engine.bank.FaultTable` (nominal and fault values).
         onset: ``(F,)`` onset step of each fault, negative if it does not occur.
-        magnitude: ``(F,)`` magnitude of each fault (fraction of its deviation).
-        num_phases: ``K``, at least one more than the number of events: phases after the
-            last event repeat it and start at :data:`NEVER`.
+        magnitude: ``(F,)`` magnitude of each fault
+            (:func:`~uimm_jax.engine.bank.param_at_magnitude`).
+        num_phases: ``K``, at least one more than the number of breakpoints
+            (:func:`fault_breakpoints`): phases after the last repeat it and start at
+            :data:`NEVER`.
+        ramp: optional ``(F,)`` ramp lengths in steps.
+        end: optional ``(F,)`` end steps (negative: never).
+        stairs: stairs per ramp.
 
     Returns:
-        ``(thetas (K, P), codes (K,) int32, event_steps (K-1,) int32, present (K, F))``;
-        events are taken in onset order (ties in fault order).
+        ``(thetas (K, P), codes (K,) int32, event_steps (K-1,) int32, present (K, F),
+        levels (K, F))``; the code of a phase holds the faults of non-zero magnitude.
     """
     F = table.num_faults
-    onset = np.asarray(onset)
-    order = [j for j in np.argsort(onset, kind="stable") if onset[j] >= 0]
-    if len(order) + 1 > num_phases:
-        raise ValueError(f"{len(order)} events need {len(order) + 1} phases, got {num_phases}")
-    present = np.zeros(F, bool)
-    thetas = [table.nominal.copy()]
-    codes = [0]
-    steps = []
-    sets = [present.copy()]
-    for j in order:
-        present[j] = True
-        thetas.append(table.theta_numpy(present, magnitude))
-        codes.append(int(np.sum(present * (1 << np.arange(F)))))
-        steps.append(int(onset[j]))
-        sets.append(present.copy())
-    while len(thetas) < num_phases:
-        thetas.append(thetas[-1])
-        codes.append(codes[-1])
-        steps.append(NEVER)
-        sets.append(sets[-1])
+    steps, levels = fault_breakpoints(onset, magnitude, ramp, end, stairs)
+    if len(steps) + 1 > num_phases:
+        raise ValueError(f"{len(steps)} events need {len(steps) + 1} phases, got {num_phases}")
+    levels = np.concatenate([np.zeros((1, F)), levels])
+    present = levels > 0
+    thetas = [table.theta_numpy(s, lv) for s, lv in zip(present, levels, strict=True)]
+    codes = [int(np.sum(s * (1 << np.arange(F)))) for s in present]
+    pad = num_phases - len(thetas)
     return (
-        np.array(thetas),
-        np.array(codes, np.int32),
-        np.array(steps, np.int32).reshape(-1),
-        np.array(sets),
+        np.array(thetas + [thetas[-1]] * pad),
+        np.array(codes + [codes[-1]] * pad, np.int32),
+        np.concatenate([steps, np.full(pad, NEVER)]).astype(np.int32),
+        np.concatenate([present, np.repeat(present[-1:], pad, 0)]),
+        np.concatenate([levels, np.repeat(levels[-1:], pad, 0)]),
     )
 
 
@@ -244,6 +301,8 @@ def truth_plan(
     num_phases: int | None = None,
     noise_scale=None,
     dtype=None,
+    ramp=None,
+    end=None,
 ) -> TruthPlan:
     """The truth plan of one run or a batch of runs.
 
@@ -262,6 +321,8 @@ def truth_plan(
         noise_scale: optional ``(B,)`` scales of each run's noise standard deviations
             (the factors become ``(n, n, B)``).
         dtype: float dtype (default: JAX's default float).
+        ramp: optional ``(*runs, F)`` ramp length of each fault in steps (0: abrupt).
+        end: optional ``(*runs, F)`` step at which each fault disappears (negative: never).
 
     Returns:
         The :class:`TruthPlan`.
@@ -275,9 +336,17 @@ def truth_plan(
     runs = onset.shape[:-1]
     on = onset.reshape(-1, onset.shape[-1])
     mag = np.broadcast_to(magnitude, onset.shape).reshape(on.shape)
-    K = num_phases or 1 + int(np.max(np.sum(on >= 0, axis=-1), initial=0))
-    th, codes, steps, sets = zip(
-        *(plan_phases(table, o, a, K) for o, a in zip(on, mag, strict=True)), strict=True
+    rmp = np.zeros(onset.shape, np.int64) if ramp is None else ramp
+    rmp = np.broadcast_to(np.asarray(rmp, np.int64), onset.shape).reshape(on.shape)
+    fin = np.full(onset.shape, -1, np.int64) if end is None else end
+    fin = np.broadcast_to(np.asarray(fin, np.int64), onset.shape).reshape(on.shape)
+    needed = [
+        len(fault_breakpoints(o, a, r, e)[0]) for o, a, r, e in zip(on, mag, rmp, fin, strict=True)
+    ]
+    K = num_phases or 1 + max(needed, default=0)
+    th, codes, steps, sets, _ = zip(
+        *(plan_phases(table, o, a, K, r, e) for o, a, r, e in zip(on, mag, rmp, fin, strict=True)),
+        strict=True,
     )
     th = np.array(th)  # (R, K, P)
     uniq, idx = np.unique(th.reshape(-1, th.shape[-1]), axis=0, return_inverse=True)
@@ -307,8 +376,10 @@ def phase_index(plan: TruthPlan, k: jax.Array) -> jax.Array:
     return jnp.sum((k >= plan.event_steps).astype(jnp.int32), axis=-1)
 
 
-def _select(leaf: jax.Array, onehot: jax.Array) -> jax.Array:
-    return jnp.sum(leaf * onehot.astype(leaf.dtype), axis=-1)
+def _select(leaf: jax.Array, ph: jax.Array) -> jax.Array:
+    """``leaf[..., *runs, ph]``: one phase per run (a gather: O(1) in the phase count)."""
+    idx = jnp.broadcast_to(ph[..., None], leaf.shape[:-1] + (1,))
+    return jnp.take_along_axis(leaf, idx, axis=-1)
 
 
 def standard_noise(key: jax.Array, k: jax.Array, size: int, runs: tuple, dtype) -> jax.Array:
@@ -350,12 +421,10 @@ def truth_step(
     """
     n = x.shape[0]
     ph = phase_index(plan, k)
-    K = plan.true_codes.shape[-1]
-    onehot = ph[..., None] == jnp.arange(K)
-    cache = jax.tree.map(lambda leaf: _select(leaf, onehot)[..., None], plan.cache)
+    cache = jax.tree.map(lambda leaf: _select(leaf, ph), plan.cache)
     xn, _ = dyn.predict(cache, x[..., None], u[..., None])
     yp, _ = dyn.observe(cache, xn)
     x_next = xn[..., 0] + bk.mv(plan.Gq, z[:n])
     y = yp[..., 0] + bk.mv(plan.Gr, z[n:])
-    code = jnp.sum(jnp.where(onehot, plan.true_codes, 0), axis=-1)
+    code = jnp.take_along_axis(plan.true_codes, ph[..., None], axis=-1)[..., 0]
     return x_next, y, code

@@ -317,6 +317,27 @@ class FieldChecker:
             )
         return step
 
+    def end_time(
+        self, value: Any, field: str, time: float, step: int, dt: float, duration: float
+    ) -> float:
+        """The end of a fault event (s): after its onset's sample and before the run's end."""
+        end = self.number(
+            value,
+            field,
+            low=time,
+            low_open=True,
+            high=duration,
+            high_open=True,
+            unit="(s; after the event's time and before the run's end)",
+        )
+        if int(round(end / dt)) <= step:
+            self.fail(
+                field,
+                f"end {end!r} s acts from sample {int(round(end / dt))}, not after the "
+                f"onset's sample {step}: the fault would never be present.",
+            )
+        return end
+
     def writable(self, value: Any, field: str) -> None:
         """Check that a raw value (the ``[sweep]`` table) holds only TOML types."""
         if isinstance(value, Mapping):

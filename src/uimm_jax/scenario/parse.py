@@ -150,7 +150,7 @@ _TOP_KEYS = (
 _PLANT_KEYS = ("model", "params", "module")
 _INPUT_KEYS = ("kind", "amplitude", "frequency", "offset", "step_time")
 _NOISE_KEYS = ("process", "measurement")
-_EVENT_KEYS = ("time", "fault", "magnitude")
+_EVENT_KEYS = ("time", "fault", "magnitude", "ramp", "end")
 _FILTER_KEYS = (
     "method",
     "stay",
@@ -475,7 +475,11 @@ class _Parser(FieldChecker):
                     "the other, or not at all (README, Known limitations).",
                 )
             onset.setdefault(step, i)
-            events.append(EventSpec(time, fault, magnitude))
+            ramp = self.number(entry.get("ramp", 0.0), f"{header}.ramp", low=0.0, unit="(s)")
+            end = None
+            if "end" in entry:
+                end = self.end_time(entry["end"], f"{header}.end", time, step, dt, duration)
+            events.append(EventSpec(time, fault, magnitude, ramp, end))
         return tuple(sorted(events, key=lambda e: e.time))
 
     def parse_filter(self, value: Any, plant: Plant, num_faults: int) -> FilterSpec:

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from uimm_jax._checks import ROW_SUM_TOL
+from uimm_jax.engine.bank import param_at_magnitude
 from uimm_jax.engine.truth import INPUT_KINDS
 from uimm_jax.plants.base import Plant
 
@@ -39,7 +40,7 @@ __all__ = [
     "nonpositive_param",
 ]
 
-METHODS = ("uimm", "imm")
+METHODS = ("uimm", "imm", "uimm-est")
 """Filter-bank methods: the updated IMM (F + 1 models) or the combinatorial IMM (2**F)."""
 
 PROB_SUM_TOL = 1e-9
@@ -108,19 +109,25 @@ class InputSpec:
 
 @dataclasses.dataclass(frozen=True)
 class EventSpec:
-    """A true fault event: from ``time`` on, ``fault`` is present (faults are irreversible).
+    """A true fault event: from ``time`` on, ``fault`` is present (until ``end``, if given).
 
     Attributes:
         time: s, in ``[0, duration)``.
         fault: name of a fault of the scenario's library.
-        magnitude: fraction of the nominal -> fault deviation of every parameter of the
-            fault: ``value = nominal + magnitude * (fault_value - nominal)``; 1 is the
-            library's fault.
+        magnitude: the fault's size, any value > 0; 1 is the library's fault
+            (:func:`~uimm_jax.engine.bank.param_at_magnitude`: ``nominal + magnitude *
+            (fault_value - nominal)``, or ``nominal * (fault_value / nominal)^magnitude``
+            for the plant's positive parameters).
+        ramp: s; the magnitude grows linearly from 0 at ``time`` to ``magnitude`` at
+            ``time + ramp`` (0: abrupt).
+        end: s or ``None``; from ``end`` on the fault is gone (intermittent or repaired).
     """
 
     time: float
     fault: str
     magnitude: float = 1.0
+    ramp: float = 0.0
+    end: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -298,7 +305,7 @@ class Scenario:
 
 
 def _num_models(method: str, num_faults: int) -> int:
-    if method == "uimm":
+    if method in ("uimm", "uimm-est"):
         return num_faults + 1
     if method == "imm":
         return 2**num_faults
@@ -318,11 +325,14 @@ def nonpositive_param(
 ) -> tuple[str, float] | None:
     """The first of the plant's ``positive_params`` that a fault event takes to ``<= 0``.
 
-    At magnitude ``a`` a parameter of the fault takes ``nominal + a (fault_value - nominal)``
-    in the truth.  Returns ``(name, value)``, or ``None`` if every one stays positive.
+    At magnitude ``a`` a parameter of the fault takes
+    :func:`~uimm_jax.engine.bank.param_at_magnitude` in the truth (the log scale for
+    ``positive_params``, which therefore stay positive whenever the fault value is).
+    Returns ``(name, value)``, or ``None`` if every one stays positive.
     """
     for key, fv in values.items():
-        value = nominal[key] + magnitude * (fv - nominal[key])
+        log = key in plant.positive_params and nominal[key] > 0 and fv > 0
+        value = float(param_at_magnitude(nominal[key], fv, magnitude, log, np))
         if key in plant.positive_params and not value > 0:
             return key, value
     return None

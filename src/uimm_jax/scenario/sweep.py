@@ -36,6 +36,7 @@ _SWEEP_KEYS = (
     "seed",
     "methods",
     "magnitudes",
+    "ramps",
     "noise_scales",
     "fault_free",
     "cases",
@@ -43,7 +44,7 @@ _SWEEP_KEYS = (
     "chunk",
 )
 _CASE_KEYS = ("name", "events")
-_EVENT_KEYS = ("fault", "time", "magnitude")
+_EVENT_KEYS = ("fault", "time", "magnitude", "ramp", "duration")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,12 +55,19 @@ class EventDraw:
         fault: a fault of the scenario's library.
         time: ``(lo, hi)`` onset window in s; ``lo == hi`` for a fixed onset.  A window's
             onset is drawn uniformly in ``[lo, hi)`` per run and rounded to a step.
-        magnitude: fraction of the nominal -> fault deviation (before the cell's scale).
+        magnitude: the fault's size (before the cell's scale; 1 = the library's value,
+            :func:`~uimm_jax.engine.bank.param_at_magnitude`).
+        ramp: s, linear growth from nominal to the magnitude (0: abrupt); a cell of the
+            ``ramps`` axis replaces it.
+        duration: ``(lo, hi)`` s the fault lasts, drawn uniformly per run (an intermittent
+            fault), or ``None``: it stays.
     """
 
     fault: str
     time: tuple[float, float]
     magnitude: float = 1.0
+    ramp: float = 0.0
+    duration: tuple[float, float] | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,6 +92,8 @@ class SweepSpec:
         seed: root seed of the run keys.
         methods: methods to compare (``"uimm"``, ``"imm"``).
         magnitudes: scales of every event's magnitude.
+        ramps: ramp lengths (s) that replace every event's ramp; ``(None,)``: the events'
+            own ramps.
         noise_scales: scales of the truth's noise standard deviations.
         fault_free: include the fault-free case.
         cases: the fault cases.
@@ -100,6 +110,33 @@ class SweepSpec:
     cases: tuple[CaseSpec, ...]
     batch: int = DEFAULT_BATCH
     chunk: int | None = None
+    ramps: tuple[float | None, ...] = (None,)
+
+
+def _window(chk: FieldChecker, t: Any, field: str, what: str) -> tuple[float, float]:
+    """A number or a window ``[lo, hi]`` (``lo <= hi``)."""
+    if is_number(t):
+        lo = hi = chk.number(t, field)
+    elif isinstance(t, list | tuple) and len(t) == 2:
+        lo = chk.number(t[0], f"{field}[0]")
+        hi = chk.number(t[1], f"{field}[1]")
+        if hi < lo:
+            chk.fail(field, f"window [{lo!r}, {hi!r}] is reversed; write [lo, hi].")
+    else:
+        chk.fail(field, f"must be {what} in s or a window [lo, hi] to draw it from, got {t!r}.")
+    return lo, hi
+
+
+def _ramps(chk: FieldChecker, value: Any, field: str) -> tuple[float, ...]:
+    """A number or a non-empty array of distinct finite numbers >= 0 (ramp lengths, s)."""
+    if is_number(value):
+        value = [value]
+    if not isinstance(value, list | tuple) or not value:
+        chk.fail(field, f"must be a non-empty array of ramp lengths >= 0 (s), got {value!r}.")
+    out = tuple(chk.number(v, f"{field}[{i}]", low=0.0, unit="(s)") for i, v in enumerate(value))
+    if len(set(out)) != len(out):
+        chk.fail(field, f"has repeated values: {list(out)}.")
+    return out
 
 
 def _positive_numbers(chk: FieldChecker, value: Any, field: str) -> tuple[float, ...]:
@@ -130,18 +167,7 @@ def _parse_event(chk: FieldChecker, entry: Any, field: str, scenario) -> EventDr
         )
     t = entry["time"]
     dur = float(scenario.duration)
-    if is_number(t):
-        lo = hi = chk.number(t, f"{field}.time")
-    elif isinstance(t, list | tuple) and len(t) == 2:
-        lo = chk.number(t[0], f"{field}.time[0]")
-        hi = chk.number(t[1], f"{field}.time[1]")
-        if hi < lo:
-            chk.fail(f"{field}.time", f"window [{lo!r}, {hi!r}] is reversed; write [lo, hi].")
-    else:
-        chk.fail(
-            f"{field}.time",
-            f"must be an onset time in s or a window [lo, hi] to draw it from, got {t!r}.",
-        )
+    lo, hi = _window(chk, t, f"{field}.time", "an onset time")
     if lo < 0 or hi >= dur:
         chk.fail(
             f"{field}.time",
@@ -149,7 +175,17 @@ def _parse_event(chk: FieldChecker, entry: Any, field: str, scenario) -> EventDr
         )
     chk.onset_step(lo, f"{field}.time", scenario.dt, scenario.num_steps)
     mag = chk.positive(entry.get("magnitude", 1.0), f"{field}.magnitude")
-    return EventDraw(str(fault), (lo, hi), mag)
+    ramp = chk.number(entry.get("ramp", 0.0), f"{field}.ramp", low=0.0, unit="(s)")
+    duration = None
+    if "duration" in entry:
+        duration = _window(chk, entry["duration"], f"{field}.duration", "a duration")
+        if duration[0] < float(scenario.dt):
+            chk.fail(
+                f"{field}.duration",
+                f"{entry['duration']!r} s: a fault must last at least one sample "
+                f"(dt = {float(scenario.dt)!r} s).",
+            )
+    return EventDraw(str(fault), (lo, hi), mag, ramp, duration)
 
 
 def _parse_cases(chk: FieldChecker, value: Any, scenario) -> tuple[CaseSpec, ...]:
@@ -208,6 +244,7 @@ def sweep_spec(
     cases: Sequence[Mapping] | None = None,
     batch: int | None = None,
     chunk: int | None = None,
+    ramps: Sequence[float] | None = None,
 ) -> SweepSpec:
     """Validate the scenario's ``[sweep]`` table, with the given arguments overriding it.
 
@@ -241,15 +278,17 @@ def sweep_spec(
         if isinstance(v, str):
             v = [v]
         if not isinstance(v, list | tuple) or not v:
-            chk.fail(f, f"must be a non-empty array of 'uimm' / 'imm', got {v!r}.")
+            chk.fail(f, f"must be a non-empty array of {' / '.join(METHODS)}, got {v!r}.")
         for i, m in enumerate(v):
             if m not in METHODS:
-                chk.fail(f"{f}[{i}]", f"must be 'uimm' or 'imm', got {m!r}.")
+                chk.fail(f"{f}[{i}]", f"must be one of {', '.join(METHODS)}, got {m!r}.")
         if len(set(v)) != len(v):
             chk.fail(f, f"has repeated methods: {list(v)}.")
         methods_ = tuple(v)
     v, f = pick("magnitudes", magnitudes)
     mags = (1.0,) if v is None else _positive_numbers(chk, list(v) if not is_number(v) else v, f)
+    v, f = pick("ramps", ramps)
+    ramps_ = (None,) if v is None else _ramps(chk, list(v) if not is_number(v) else v, f)
     v, f = pick("noise_scales", noise_scales)
     noises = (1.0,) if v is None else _positive_numbers(chk, list(v) if not is_number(v) else v, f)
     v, f = pick("fault_free", fault_free)
@@ -261,7 +300,13 @@ def sweep_spec(
     v = cases if cases is not None else table.get("cases")
     if v is None:
         evs = tuple(
-            EventDraw(e.fault, (float(e.time), float(e.time)), float(e.magnitude))
+            EventDraw(
+                e.fault,
+                (float(e.time), float(e.time)),
+                float(e.magnitude),
+                float(e.ramp),
+                None if e.end is None else (e.end - e.time, e.end - e.time),
+            )
             for e in scenario.events
         )
         cases_ = (CaseSpec(scenario.name, evs),) if evs else ()
@@ -270,7 +315,7 @@ def sweep_spec(
     if not cases_ and not ff:
         chk.fail("[sweep].cases", "no fault case and fault_free = false: nothing to run.")
     _check_positive_params(chk, scenario, cases_, mags, pick("magnitudes", magnitudes)[1])
-    return SweepSpec(runs_, seed_, methods_, mags, noises, ff, cases_, batch_, chunk_)
+    return SweepSpec(runs_, seed_, methods_, mags, noises, ff, cases_, batch_, chunk_, ramps_)
 
 
 def _check_positive_params(chk, scenario, cases, mags, field: str) -> None:

@@ -76,6 +76,8 @@ def scenario_to_dict(scenario: Scenario) -> dict[str, Any]:
     if scenario.events:
         out["events"] = [
             {"time": float(e.time), "fault": e.fault, "magnitude": float(e.magnitude)}
+            | ({"ramp": float(e.ramp)} if e.ramp else {})
+            | ({} if e.end is None else {"end": float(e.end)})
             for e in scenario.events
         ]
     flt = scenario.filter

@@ -37,9 +37,9 @@ def check_scenario(scenario, name: str = "scenario") -> None:
 
 
 def check_method(method, name: str = "method") -> None:
-    """``"uimm"`` or ``"imm"``."""
-    if method not in ("uimm", "imm"):
-        raise ValueError(f"{name}: expected 'uimm' or 'imm', got {method!r}")
+    """``"uimm"``, ``"imm"`` or ``"uimm-est"``."""
+    if method not in ("uimm", "imm", "uimm-est"):
+        raise ValueError(f"{name}: expected 'uimm', 'imm' or 'uimm-est', got {method!r}")
 
 
 _CHECKED_PLANTS: weakref.WeakSet = weakref.WeakSet()

@@ -34,14 +34,26 @@ import numpy as np
 from uimm_jax._checks import check_positive_int, check_seed
 from uimm_jax.engine import metrics
 from uimm_jax.engine.bank import FaultTable, fault_table
-from uimm_jax.engine.scan import FILTER_OUTPUTS, filter_chunk, scan_chunked, truth_scan
+from uimm_jax.engine.scan import (
+    ESTIMATE_OUTPUTS,
+    FILTER_OUTPUTS,
+    filter_chunk,
+    scan_chunked,
+    truth_scan,
+)
 from uimm_jax.engine.truth import InputSignal, TruthPlan
-from uimm_jax.engine.uimm import Diagnoser, DiagParams, build_diagnoser, make_params
+from uimm_jax.engine.uimm import Diagnoser, DiagParams, make_params
+from uimm_jax.engine.uimm_est import Z95, UIMMEstDiagnoser, build_diagnoser
 from uimm_jax.errors import UIMMWarning
 from uimm_jax.plants.dynamics import make_dynamics
 from uimm_jax.studies.checks import check_run_data, check_setup_args
 from uimm_jax.studies.measured import truth_for_measurements
-from uimm_jax.studies.truth import build_truth_plan, scenario_inputs, scenario_onsets
+from uimm_jax.studies.truth import (
+    build_truth_plan,
+    scenario_inputs,
+    scenario_onsets,
+    scenario_ramps,
+)
 
 __all__ = [
     "RunResult",
@@ -93,7 +105,12 @@ class RunSetup:
 @functools.lru_cache(maxsize=64)
 def _cached_diagnoser(plant, dt, method, gate, faults_key, nominal_key):
     nominal = np.asarray(nominal_key)
-    table = fault_table(plant.param_names, nominal, {k: dict(v) for k, v in faults_key})
+    table = fault_table(
+        plant.param_names,
+        nominal,
+        {k: dict(v) for k, v in faults_key},
+        log_params=plant.positive_params,
+    )
     refs = [nominal] + [
         table.theta_numpy(np.eye(table.num_faults, dtype=bool)[j]) for j in range(table.num_faults)
     ]
@@ -178,7 +195,10 @@ def setup_scenario(
     init = diag.init(np.asarray(flt.initial_mean), np.asarray(flt.initial_cov), mu0, (), dtype)
     # Truth plan: phase 0 nominal, then one phase per event (faults accumulate).
     onset, magnitude, steps = scenario_onsets(scenario, table.names, magnitude_scale)
-    plan = build_truth_plan(scenario, diag.dyn, table, onset, magnitude, dtype=dtype)
+    ramp, end = scenario_ramps(scenario, table.names)
+    plan = build_truth_plan(
+        scenario, diag.dyn, table, onset, magnitude, dtype=dtype, ramp=ramp, end=end
+    )
     return RunSetup(
         scenario,
         method,
@@ -271,6 +291,8 @@ def filter_measurements(
     N = ys.shape[0]
     us = jnp.asarray(scenario_inputs(sc, N) if u is None else u, dtype)
     keys = FILTER_OUTPUTS + (("cov",) if with_cov else ())
+    if isinstance(setup.diagnoser, UIMMEstDiagnoser):
+        keys += ESTIMATE_OUTPUTS
     run = lambda c, k0, uy: filter_chunk(setup.diagnoser, setup.params, c, k0, uy, keys)
     final, out = scan_chunked(
         run, setup.init_state, N, chunk=chunk, xs=(us, ys), progress=progress, timings=timings
@@ -434,6 +456,49 @@ def run_fdi_counts(setup: RunSetup, truth_codes, outputs: dict) -> metrics.FDICo
     return metrics.FDICounts(*(np.sum(np.asarray(t)) for t in terms))
 
 
+def decision_changes(outputs: dict, truth_codes, names, dt: float, hold: int = 0) -> dict[str, Any]:
+    """Declarations and retractions of a run from its declared-set codes, with sizes.
+
+    Every switch on of fault ``j`` at step ``k`` is a declaration (*correct* when ``j`` is
+    in the truth at ``k``), every switch off a retraction (*correct* when ``j`` is no longer
+    in the truth: the fault had ended).  With per-step ``magnitude`` and ``magnitude_sd``
+    outputs (a size-estimating diagnoser) a declaration carries the estimate and its 95 %
+    interval at the end of the run; if it was retracted, ``hold + 1`` samples before the
+    retraction, when the retraction rule began to count (after that the estimate follows
+    the fault's end).
+
+    Returns:
+        ``{"declarations": [...], "retractions": [...]}``; the declarations only when the
+        outputs have magnitudes (else the caller's list stands).
+    """
+    codes = np.asarray(outputs["declared"], np.int64)
+    truth = np.asarray(truth_codes, np.int64)
+    prev = np.concatenate([[0], codes[:-1]])
+    decl, retr = [], []
+    mag = outputs.get("magnitude")
+    sd = outputs.get("magnitude_sd")
+    for j, name in enumerate(names):
+        bit = 1 << j
+        on = np.flatnonzero((codes & bit) & ~(prev & bit))
+        off = np.flatnonzero(~(codes & bit) & (prev & bit))
+        for k in on:
+            entry = {"fault": name, "time": float((k + 1) * dt), "correct": bool(truth[k] & bit)}
+            if mag is not None:
+                later = off[off > k]
+                last = max(int(later[0]) - 1 - hold, k) if later.size else len(codes) - 1
+                m, s_ = float(mag[last, j]), float(sd[last, j])
+                entry |= {"magnitude": m, "magnitude_ci": [m - Z95 * s_, m + Z95 * s_]}
+            decl.append(entry)
+        retr += [
+            {"fault": name, "time": float((k + 1) * dt), "correct": not bool(truth[k] & bit)}
+            for k in off
+        ]
+    out: dict[str, Any] = {"retractions": sorted(retr, key=lambda d: d["time"])}
+    if mag is not None:
+        out["declarations"] = sorted(decl, key=lambda d: d["time"])
+    return out
+
+
 def summarize(
     setup: RunSetup,
     truth_codes: np.ndarray,
@@ -467,6 +532,10 @@ def summarize(
     found = metrics.detected(onset, decl_step)
     decl = metrics.declaration_list(decl_step, names, dt)
     is_false = [bool(false_mask[names.index(d["fault"])]) for d in decl]
+    changes = decision_changes(outputs, truth_codes, names, dt, int(sc.filter.decision.hold))
+    if "declarations" in changes:  # a diagnoser that retracts: every switch on counts
+        decl = changes["declarations"]
+        is_false = [not d["correct"] for d in decl]
     false = [
         {"fault": d["fault"], "time": d["time"]} for d, f in zip(decl, is_false, strict=True) if f
     ]
@@ -490,12 +559,15 @@ def summarize(
         "faults": names,
         "events": [
             {"fault": ev.fault, "time": float(ev.time), "magnitude": float(ev.magnitude)}
+            | {"ramp": float(ev.ramp), "end": None if ev.end is None else float(ev.end)}
             for ev in sc.events
         ],
         "declarations": [
             {"fault": d["fault"], "time": d["time"], "correct": not f}
+            | {k: d[k] for k in ("magnitude", "magnitude_ci") if k in d}
             for d, f in zip(decl, is_false, strict=True)
         ],
+        "retractions": changes["retractions"],
         "detection_delay_s": delays,
         "false_declarations": len(false),
         "false_declaration_list": false,

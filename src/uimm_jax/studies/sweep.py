@@ -67,15 +67,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from uimm_jax.engine import metrics
-from uimm_jax.engine.metrics import RunMetrics, init_metrics
-from uimm_jax.engine.scan import SimCarry, scan_chunked, simulate_diagnose
-from uimm_jax.engine.truth import TruthPlan, run_keys
+from uimm_jax.engine.truth import RAMP_STAIRS, run_keys
 from uimm_jax.errors import UIMMWarning
 from uimm_jax.scenario.sweep import FAULT_FREE, CaseSpec, SweepSpec, sweep_spec
-from uimm_jax.studies.run import RunSetup, setup_scenario
+from uimm_jax.studies.run import setup_scenario
+from uimm_jax.studies.sweep_batch import batch_inputs, run_batch
 from uimm_jax.studies.sweep_outputs import Cell, SweepResult, cell_summary
 from uimm_jax.studies.sweep_store import Finished, manifest_for, open_store
-from uimm_jax.studies.truth import build_truth_plan
 
 __all__ = ["CHUNK_RUN_STEPS", "LANES", "batch_inputs", "run_batch", "run_sweep"]
 
@@ -106,8 +104,43 @@ def _cells(spec: SweepSpec) -> list[Cell]:
                 cells.append(Cell(len(cells), method, FAULT_FREE, 0.0, noise))
             for case in spec.cases:
                 for mag in spec.magnitudes:
-                    cells.append(Cell(len(cells), method, case.name, mag, noise))
+                    for ramp in spec.ramps:
+                        cells.append(Cell(len(cells), method, case.name, mag, noise, ramp))
     return cells
+
+
+def _durations(case: CaseSpec, draw_keys: np.ndarray, dt: float) -> np.ndarray:
+    """Steps each event of ``case`` lasts for every run: ``(runs, E)`` int64, -1: for good.
+
+    A window's duration is drawn from ``fold_in(draw_key, 1000 + e)`` (independent of the
+    onset draws).
+    """
+    R = draw_keys.shape[0]
+    out = np.full((R, len(case.events)), -1, np.int64)
+    with jax.default_device(jax.devices("cpu")[0]):
+        for e, ev in enumerate(case.events):
+            if ev.duration is None:
+                continue
+            lo, hi = ev.duration
+            u = jax.vmap(
+                lambda k, e=e: jax.random.uniform(jax.random.fold_in(k, 1000 + e), (), jnp.float64)
+            )(jnp.asarray(draw_keys))
+            t = lo + (hi - lo) * np.asarray(u, np.float64)
+            out[:, e] = np.maximum(np.round(t / dt).astype(np.int64), 1)
+    return out
+
+
+def _max_phases(spec: SweepSpec) -> int:
+    """An upper bound on the truth phases of any run (one compiled shape per batch)."""
+    worst = 0
+    for case in spec.cases:
+        ramps = [r for r in spec.ramps if r is not None]
+        k = 0
+        for ev in case.events:
+            ramp = max([ev.ramp] + ramps) if ramps or ev.ramp else 0.0
+            k += (RAMP_STAIRS + 1 if ramp > 0 else 1) + (ev.duration is not None)
+        worst = max(worst, k)
+    return max(2, 1 + worst)  # at least one padding phase: one compiled shape
 
 
 def _onset_steps(case: CaseSpec, draw_keys: np.ndarray, dt: float, num_steps: int) -> np.ndarray:
@@ -126,168 +159,6 @@ def _onset_steps(case: CaseSpec, draw_keys: np.ndarray, dt: float, num_steps: in
                 t = np.full(R, lo)
             out[:, e] = np.clip(np.round(t / dt).astype(np.int64), 0, num_steps - 1)
     return out
-
-
-def _broadcast_state(state, B: int):
-    """A single-run :class:`~uimm_jax.engine.uimm.DiagState` repeated over ``B`` runs.
-
-    Every leaf gains the run axis last (the engine's layout: small axes, models, runs).
-    """
-    return jax.tree.map(lambda a: jnp.broadcast_to(a[..., None], a.shape + (B,)), state)
-
-
-def batch_inputs(
-    setup: RunSetup, onset, magnitude, noise_scale, keys, num_phases: int, dtype
-) -> tuple[TruthPlan, jax.Array, SimCarry]:
-    """Truth plan, noise keys and initial carry of one batch of ``B`` runs.
-
-    Args:
-        setup: the method's :class:`~uimm_jax.studies.run.RunSetup`.
-        onset: ``(B, F)`` onset step of each fault (``-1``: absent).
-        magnitude: ``(B, F)`` truth magnitude of each fault.
-        noise_scale: ``(B,)`` scale of each run's truth noise.
-        keys: ``(B, 2)`` noise keys (:func:`~uimm_jax.engine.truth.run_keys`).
-        num_phases: phases per run (one compiled shape for every batch).
-        dtype: float dtype.
-    """
-    scenario = setup.scenario
-    B = len(keys)
-    plan = build_truth_plan(
-        scenario,
-        setup.diagnoser.dyn,
-        setup.table,
-        onset,
-        magnitude,
-        dtype=dtype,
-        num_phases=num_phases,
-        noise_scale=noise_scale,
-        where="[sweep]: ",
-        hint="the magnitudes and the fault values",
-    )
-    n = scenario.plant.state_dim
-    carry = SimCarry(
-        x=jnp.zeros((n, B), dtype),
-        diag=_broadcast_state(setup.init_state, B),
-        metrics=init_metrics(B, scenario.num_faults, n, dtype),
-    )
-    return plan, jnp.asarray(keys), carry
-
-
-_jit_chunk = jax.jit(simulate_diagnose, static_argnums=(0, 1, 2))
-
-
-def _run_spec(ndim: int, trailing: int):
-    from jax.sharding import PartitionSpec
-
-    lead = ndim - 1 - trailing
-    return PartitionSpec(*([None] * lead), "runs", *([None] * trailing))
-
-
-def _specs(carry: SimCarry, plan: TruthPlan, keys):
-    """PartitionSpecs that split the run axis of every batched leaf.
-
-    The run axis is the last axis of the carry's leaves (the engine's layout: small axes,
-    models, runs) and the one before the last of the truth plan's phase leaves
-    (``(..., runs, phases)``) and of the keys.
-    """
-
-    def t(tree, trailing):
-        return jax.tree.map(lambda a: _run_spec(a.ndim, trailing), tree)
-
-    carry_spec = t(carry, 0)
-    plan_spec = TruthPlan(
-        cache=t(plan.cache, 1),
-        event_steps=t(plan.event_steps, 1),
-        true_codes=t(plan.true_codes, 1),
-        Gq=t(plan.Gq, 0),
-        Gr=t(plan.Gr, 0),
-    )
-    return carry_spec, plan_spec, t(keys, 1)
-
-
-@functools.lru_cache(maxsize=32)
-def _sharded_chunk(diag, dt, p, mesh, carry_spec, plan_spec, keys_spec):
-    """A jitted, shard_mapped chunk function (cached: built and compiled once)."""
-    from jax.sharding import PartitionSpec
-
-    rep = PartitionSpec()
-
-    def fn(params, plan, signal, keys, carry, ks):
-        return simulate_diagnose(diag, dt, p, params, plan, signal, keys, carry, ks)
-
-    smap = jax.shard_map(
-        fn,
-        mesh=mesh,
-        in_specs=(rep, plan_spec, rep, keys_spec, carry_spec, rep),
-        out_specs=carry_spec,
-        check_vma=False,
-    )
-    return jax.jit(smap)
-
-
-def _place(tree, specs, mesh):
-    """Global arrays split over ``mesh`` (every process holds the same host values)."""
-    from jax.sharding import NamedSharding
-
-    if jax.process_count() == 1:
-        return jax.tree.map(lambda a, s: jax.device_put(a, NamedSharding(mesh, s)), tree, specs)
-
-    def put(a, s):
-        host = np.asarray(a)
-        return jax.make_array_from_callback(host.shape, NamedSharding(mesh, s), host.__getitem__)
-
-    return jax.tree.map(put, tree, specs)
-
-
-def _fetch(tree):
-    """Host NumPy copies of (possibly sharded, possibly multi-process) arrays."""
-    if jax.process_count() > 1:  # pragma: no cover - multi-host only
-        from jax.experimental import multihost_utils
-
-        return jax.tree.map(
-            lambda a: np.asarray(multihost_utils.process_allgather(a, tiled=True)), tree
-        )
-    return jax.tree.map(np.asarray, tree)
-
-
-def run_batch(
-    setup: RunSetup, plan, keys, carry, num_steps: int, chunk: int, *, mesh=None, progress=None
-) -> RunMetrics:
-    """Scan one batch over all steps (chunked); return its :class:`RunMetrics` on the host.
-
-    Args:
-        setup: the method's :class:`~uimm_jax.studies.run.RunSetup`.
-        plan: see :func:`batch_inputs`.
-        keys: see :func:`batch_inputs`.
-        carry: see :func:`batch_inputs`.
-        num_steps: samples per run.
-        chunk: time steps per compiled chunk.
-        mesh: optional ``jax.sharding.Mesh`` with a ``"runs"`` axis to shard the runs over.
-        progress: optional ``(done, total, elapsed)`` callback of :func:`scan_chunked`.
-    """
-    diag, params, signal = setup.diagnoser, setup.params, setup.signal
-    dt, p = float(setup.scenario.dt), setup.scenario.plant.input_dim
-    if mesh is None:
-
-        def run(c, k0, ks):
-            del k0
-            return _jit_chunk(diag, dt, p, params, plan, signal, keys, c, ks), None
-
-    else:
-        cs, ps, kspec = _specs(carry, plan, keys)
-        fn = _sharded_chunk(diag, dt, p, mesh, cs, ps, kspec)
-        carry = _place(carry, cs, mesh)
-        plan = _place(plan, ps, mesh)
-        keys = _place(keys, kspec, mesh)
-
-        def run(c, k0, ks):
-            del k0
-            return fn(params, plan, signal, keys, c, ks), None
-
-    carry, _ = scan_chunked(
-        run, carry, num_steps, chunk=chunk, progress=progress, keep_outputs=False
-    )
-    return _fetch(carry.metrics)
 
 
 class _Eta:
@@ -362,6 +233,7 @@ def run_sweep(
     *,
     runs: int | None = None,
     magnitudes: Sequence[float] | None = None,
+    ramps: Sequence[float] | None = None,
     methods: Sequence[str] | None = None,
     noise_scales: Sequence[float] | None = None,
     fault_free: bool | None = None,
@@ -384,6 +256,7 @@ def run_sweep(
         scenario: a :class:`~uimm_jax.scenario.spec.Scenario`.
         runs: runs per cell.
         magnitudes: scales of the events' magnitudes.
+        ramps: ramp lengths (s) replacing every event's ramp (one cell each).
         methods: ``"uimm"`` and/or ``"imm"``.
         noise_scales: scales of the truth's noise standard deviations.
         fault_free: include the fault-free case.
@@ -414,6 +287,7 @@ def run_sweep(
         seed=seed,
         methods=methods,
         magnitudes=magnitudes,
+        ramps=ramps,
         noise_scales=noise_scales,
         fault_free=fault_free,
         cases=cases,
@@ -437,10 +311,13 @@ def run_sweep(
     names = scenario.fault_names
     noise_keys, draw_keys = run_keys(spec.seed, R)
     onsets = {c.name: _onset_steps(c, draw_keys, dt, N) for c in spec.cases}
+    lasts = {c.name: _durations(c, draw_keys, dt) for c in spec.cases}
     cases_by_name = {c.name: c for c in spec.cases}
     C = len(cells)
     onset_step = np.full((C, R, F), -1, np.int32)
     mag_arr = np.zeros((C, R, F))
+    ramp_arr = np.zeros((C, R, F), np.int64)
+    end_arr = np.full((C, R, F), -1, np.int64)
     for cell in cells:
         if cell.case == FAULT_FREE:
             continue
@@ -449,8 +326,24 @@ def run_sweep(
             j = names.index(ev.fault)
             onset_step[cell.index, :, j] = onsets[case.name][:, e]
             mag_arr[cell.index, :, j] = ev.magnitude * cell.magnitude
-    K = 1 + max((len(c.events) for c in spec.cases), default=0)
-    K = max(K, 2)  # at least one (padding) event: one compiled shape for every batch
+            ramp_s = ev.ramp if cell.ramp is None else cell.ramp
+            ramp_arr[cell.index, :, j] = int(round(ramp_s / dt))
+            last = lasts[case.name][:, e]
+            end_arr[cell.index, :, j] = np.where(last > 0, onsets[case.name][:, e] + last, -1)
+    K = _max_phases(spec)
+    est_arr = {
+        "retract_step": np.full((C, R, F), -1, np.int32),
+        "declarations": np.zeros((C, R, F), np.int32),
+        "false_count": np.zeros((C, R), np.int32),
+        "magnitude": np.full((C, R, F), np.nan),
+        "magnitude_sd": np.full((C, R, F), np.nan),
+    }
+    any_est = False
+    if resume and "uimm-est" in spec.methods:
+        raise ValueError(
+            "resume: a sweep with method 'uimm-est' cannot be resumed yet (its size and "
+            "retraction arrays are not in the checkpoint); run it again without --resume"
+        )
     # Batches: as few as ``batch`` allows, of equal sizes, a multiple of LANES per device.
     jobs_per_method = R * (C // len(spec.methods))
     nb = _ceil_div(jobs_per_method, spec.batch)
@@ -497,13 +390,24 @@ def run_sweep(
             part = part + [part[-1]] * (B - real)
             ci, ri, noise = (np.array(a) for a in zip(*part, strict=True))
             plan, keys, carry = batch_inputs(
-                setup, onset_step[ci, ri], mag_arr[ci, ri], noise, noise_keys[ri], K, dtype
+                setup,
+                onset_step[ci, ri],
+                mag_arr[ci, ri],
+                noise,
+                noise_keys[ri],
+                K,
+                dtype,
+                ramp=ramp_arr[ci, ri],
+                end=end_arr[ci, ri],
             )
             label = f"{method} batch {b + 1}/{nbm}"
             cb = None
             if report is not None:
                 cb = functools.partial(_report_chunk, report, label, runs_done, real, N)
-            m = run_batch(setup, plan, keys, carry, N, chunk_len, mesh=mesh, progress=cb)
+            est_got: list = []
+            m = run_batch(
+                setup, plan, keys, carry, N, chunk_len, mesh=mesh, progress=cb, est_out=est_got
+            )
             c, r = ci[:real], ri[:real]
             got = dict(
                 decl_step=m.decl_step.T[:real],
@@ -514,6 +418,11 @@ def run_sweep(
             )
             for name, value in got.items():
                 getattr(fin, name)[c, r] = value
+            if est_got and est_got[0] is not None:
+                any_est = True
+                for name, arr in est_arr.items():
+                    v = np.asarray(getattr(est_got[0], name))
+                    arr[c, r] = (v.T if v.ndim == 2 else v)[:real]
             if store is not None:
                 store.save_batch(c, r, **got)
             runs_done += real
@@ -543,6 +452,9 @@ def run_sweep(
         health=health,
         fdi=fdi,
         noise_keys=noise_keys,
+        true_magnitude=mag_arr,
+        end_step=end_arr,
+        estimates=est_arr if any_est else None,
         runtime_s=time.perf_counter() - t_start,
         devices=nd,
         processes=jax.process_count(),

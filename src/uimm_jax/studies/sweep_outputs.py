@@ -62,6 +62,7 @@ class Cell(NamedTuple):
         case: the case name (``"fault-free"`` for the fault-free case).
         magnitude: the magnitude scale (0 for the fault-free case).
         noise_scale: the truth noise scale.
+        ramp: s, the ramp of every event of the cell (``None``: the events' own).
     """
 
     index: int
@@ -69,6 +70,7 @@ class Cell(NamedTuple):
     case: str
     magnitude: float
     noise_scale: float
+    ramp: float | None = None
 
 
 @dataclasses.dataclass
@@ -92,6 +94,11 @@ class SweepResult:
         fdi: :class:`~uimm_jax.engine.metrics.FDICounts` of ``(C, R)`` arrays (TDR, FAR,
             FIA), or ``None``.
         noise_keys: ``(R, 2)`` uint32 noise key of each run, or ``None``.
+        true_magnitude: ``(C, R, F)`` truth magnitude of each fault (0: no event).
+        end_step: ``(C, R, F)`` step at which each fault ends (-1: never).
+        estimates: for size-estimating methods (``uimm-est``), ``(C, R, ...)`` arrays
+            ``retract_step``, ``declarations``, ``false_count``, ``magnitude`` and
+            ``magnitude_sd`` (NaN for the other methods' cells); else ``None``.
         summaries: one dict per cell (:func:`cell_summary`).
         runtime_s: wall time of the simulations (compilation included).
         devices: number of devices the run axis was sharded over (all processes).
@@ -115,6 +122,9 @@ class SweepResult:
     health: np.ndarray
     fdi: metrics.FDICounts | None = None
     noise_keys: np.ndarray | None = None
+    true_magnitude: np.ndarray | None = None
+    end_step: np.ndarray | None = None
+    estimates: dict | None = None
     summaries: list[dict] = dataclasses.field(default_factory=list)
     runtime_s: float = 0.0
     devices: int = 1
@@ -190,13 +200,64 @@ def spec_settings(spec: SweepSpec) -> dict:
             {
                 "name": c.name,
                 "events": [
-                    {"fault": e.fault, "time": list(e.time), "magnitude": e.magnitude}
+                    {
+                        "fault": e.fault,
+                        "time": list(e.time),
+                        "magnitude": e.magnitude,
+                        "ramp": e.ramp,
+                        "duration": None if e.duration is None else list(e.duration),
+                    }
                     for e in c.events
                 ],
             }
             for c in spec.cases
         ],
         "fault_free": spec.fault_free,
+        "ramps": list(spec.ramps),
+    }
+
+
+def estimate_summary(result: SweepResult, index: int) -> dict:
+    """Size and retraction metrics of a cell of a size-estimating method (else ``{}``).
+
+    * ``magnitude_bias`` and ``magnitude_mare`` (median absolute relative error) of the
+      estimate at the end of the run, and ``magnitude_coverage``, the share of runs whose
+      95 % interval holds the truth -- over the runs where the fault is present at the end
+      and declared;
+    * ``retraction_probability`` and ``retraction_delay_s`` (median, p95) over the runs
+      whose fault ended: retracted after its end, and how long after;
+    * ``false_declarations_all``: every declaration of an absent fault, re-declarations
+      included (``false_declarations`` counts first declarations).
+    """
+    est = result.estimates
+    if est is None or np.all(np.isnan(est["magnitude"][index])):
+        return {}
+    on, end = result.onset_step[index], result.end_step[index]
+    truth = result.true_magnitude[index]
+    mag, sd = est["magnitude"][index], est["magnitude_sd"][index]
+    ret = est["retract_step"][index]
+    bias, mare, cov, rp, rd = {}, {}, {}, {}, {}
+    for j, f in enumerate(result.faults):
+        stays = (on[:, j] >= 0) & (end[:, j] < 0) & (result.decl_step[index][:, j] >= 0)
+        stays &= ret[:, j] < 0
+        if stays.any():
+            err = mag[stays, j] - truth[stays, j]
+            bias[f] = float(np.mean(err))
+            mare[f] = float(np.median(np.abs(err) / truth[stays, j]))
+            cov[f] = float(np.mean(np.abs(err) <= 1.959963984540054 * sd[stays, j]))
+        ends = (on[:, j] >= 0) & (end[:, j] >= 0)
+        if ends.any():
+            ok = ends & (ret[:, j] >= end[:, j])
+            rp[f] = float(ok.sum() / ends.sum())
+            d = metrics.delay_stats((ret[ok, j] - end[ok, j]).astype(np.float64) * result.dt)
+            rd[f] = {"median": d["median"], "p95": d["p95"], "max": d["max"]}
+    return {
+        "magnitude_bias": bias,
+        "magnitude_mare": mare,
+        "magnitude_coverage": cov,
+        "retraction_probability": rp,
+        "retraction_delay_s": rd,
+        "false_declarations_all": int(est["false_count"][index].sum()),
     }
 
 
@@ -242,6 +303,7 @@ def cell_summary(result: SweepResult, index: int) -> dict:
         "method": cell.method,
         "case": cell.case,
         "magnitude": cell.magnitude,
+        "ramp": cell.ramp,
         "noise_scale": cell.noise_scale,
         "runs": R,
         "num_steps": N,
@@ -274,6 +336,7 @@ def cell_summary(result: SweepResult, index: int) -> dict:
         **fdi,
         "state_rmse": {s: float(v) for s, v in zip(result.states, rmse, strict=True)},
         "health": {f"runs_{name}": health[name] for name in _RUN_HEALTH},
+        **estimate_summary(result, index),
     }
 
 

@@ -14,9 +14,53 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from uimm_jax.engine.truth import InputSignal, NonFiniteTruth, TruthPlan, input_value, truth_plan
+from uimm_jax.engine.truth import (
+    InputSignal,
+    NonFiniteTruth,
+    TruthPlan,
+    fault_breakpoints,
+    input_value,
+    truth_plan,
+)
 
-__all__ = ["build_truth_plan", "scenario_inputs", "scenario_onsets"]
+__all__ = [
+    "build_truth_plan",
+    "scenario_inputs",
+    "scenario_onsets",
+    "scenario_ramps",
+    "true_magnitudes",
+]
+
+
+def scenario_ramps(scenario, names):
+    """Ramp length and end step of each fault from a scenario's ``[[events]]``.
+
+    Returns:
+        ``(ramp (F,) int64, end (F,) int64)``: ramp steps ``round(ramp / dt)`` (0:
+        abrupt), end step ``round(end / dt)`` (``-1``: never).
+    """
+    names = list(names)
+    ramp = np.zeros(len(names), np.int64)
+    end = np.full(len(names), -1, np.int64)
+    for ev in scenario.events:
+        j = names.index(ev.fault)
+        ramp[j] = int(round(ev.ramp / scenario.dt))
+        if ev.end is not None:
+            end[j] = int(round(ev.end / scenario.dt))
+    return ramp, end
+
+
+def true_magnitudes(scenario, names, num_steps: int, magnitude_scale: float = 1.0) -> np.ndarray:
+    """``(N, F)`` the truth's magnitude of each fault at each step (0: absent).
+
+    The same breakpoints as the truth plan
+    (:func:`~uimm_jax.engine.truth.fault_breakpoints`: ramp staircases, ends).
+    """
+    onset, magnitude, _ = scenario_onsets(scenario, names, magnitude_scale)
+    ramp, end = scenario_ramps(scenario, names)
+    steps, levels = fault_breakpoints(onset, magnitude, ramp, end)
+    idx = np.searchsorted(steps, np.arange(num_steps), side="right")
+    return np.concatenate([np.zeros((1, len(list(names)))), levels])[idx]
 
 
 def scenario_onsets(scenario, names, magnitude_scale: float = 1.0):
@@ -54,6 +98,8 @@ def build_truth_plan(
     dtype,
     num_phases: int | None = None,
     noise_scale=None,
+    ramp=None,
+    end=None,
     where: str = "",
     hint: str = "[[events]].magnitude, the fault values and [plant.params]",
 ) -> TruthPlan:
@@ -68,6 +114,8 @@ def build_truth_plan(
         dtype: float dtype.
         num_phases: phases per run (default: the fewest that hold every run's events).
         noise_scale: optional ``(B,)`` scales of the truth noise standard deviations.
+        ramp: optional ``(*runs, F)`` ramp steps of each fault (0: abrupt).
+        end: optional ``(*runs, F)`` end step of each fault (``-1``: never).
         where: prefix of the error message naming the input (e.g. ``"[sweep]: "``).
         hint: what the error message asks to check.
 
@@ -88,6 +136,8 @@ def build_truth_plan(
             num_phases=num_phases,
             noise_scale=noise_scale,
             dtype=dtype,
+            ramp=ramp,
+            end=end,
         )
     except NonFiniteTruth as err:
         faults = [

@@ -1,0 +1,239 @@
+"""Acceptance measurements of the faults issue: sizes, ramps, intermittent faults, cost.
+
+Runs Monte Carlo sweeps (:func:`uimm_jax.studies.sweep.run_sweep`) of shortened paper
+scenarios and writes one JSON per part to ``benchmarks/results/faults_unknown_size/``;
+docs/faults.md quotes them.  Usage (from the repository root)::
+
+    python benchmarks/faults_unknown_size.py sizes   --runs 64 --methods uimm-est
+    python benchmarks/faults_unknown_size.py ramps   --runs 64 --ramps 1 --methods uimm-est
+    python benchmarks/faults_unknown_size.py ramps   --runs 16 --ramps 10 --methods uimm-est
+    python benchmarks/faults_unknown_size.py sizes   --runs 16 --methods uimm imm
+    python benchmarks/faults_unknown_size.py faultfree --runs 200 --duration 2
+    python benchmarks/faults_unknown_size.py intermittent --runs 64
+    python benchmarks/faults_unknown_size.py paper --runs 16
+    python benchmarks/faults_unknown_size.py cost
+
+Parts:
+
+* ``sizes``: sims 1 and 2, abrupt faults at magnitudes 0.3, 0.5, 1, 2, 3 (air in oil on
+  its log scale), the first fault at 0.5 s and the second at 1.2 s of a 2 s run.
+* ``ramps``: the same with ramps of ``--ramps`` s; onsets 0.5 s and ``1.5 + ramp`` s, runs
+  of ``2.5 + 2 ramp`` s (every ramp completes, the estimate has 0.5 s to settle).
+* ``faultfree``: fault-free runs of ``--duration`` s.
+* ``intermittent``: sim 2's air in oil (and sim 1's leakage) present for 2-4 s from an
+  onset in [0.5, 1] s, in 6 s runs.
+* ``paper``: the paper's scenarios (``paper_sim*_tuned.toml``), shortened to 4 s with the
+  onsets at 1 and 2.5 s, for the fixed-size UIMM and uimm-est on the same noise.
+* ``cost``: single-run and 64-run steady-state time per step of uimm and uimm-est,
+  interleaved in one process.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import numpy as np  # noqa: E402
+
+from uimm_jax.scenario.parse import load_scenario, parse_scenario  # noqa: E402
+from uimm_jax.scenario.write import scenario_to_dict  # noqa: E402
+from uimm_jax.studies.sweep import run_sweep  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+OUT = REPO / "benchmarks" / "results" / "faults_unknown_size"
+MAGS = [0.3, 0.5, 1.0, 2.0, 3.0]
+FIRST = {1: ("valve_wear", "leakage"), 2: ("valve_wear", "air_in_oil")}
+
+
+def _scenario(sim: int, duration: float):
+    d = scenario_to_dict(load_scenario(REPO / "scenarios" / f"paper_sim{sim}_tuned.toml"))
+    d["duration"] = duration
+    for e in d["events"]:
+        e["time"] = min(e["time"], duration / 2)
+    return parse_scenario(d, source=f"paper_sim{sim}_tuned (shortened to {duration} s)")
+
+
+def _keep(summary: dict) -> dict:
+    drop = ("confusion", "state_rmse", "health", "detection_probability_ci")
+    return {k: v for k, v in summary.items() if k not in drop}
+
+
+def _sweep(sc, cases, args, **kw) -> list[dict]:
+    t0 = time.perf_counter()
+    res = run_sweep(
+        sc,
+        runs=args.runs,
+        methods=args.methods,
+        cases=cases,
+        seed=args.seed,
+        batch=args.batch,
+        progress=True,
+        **kw,
+    )
+    print(f"  {res.run_steps:.3g} run-steps in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    return [_keep(s) | {"runtime_s": res.runtime_s} for s in res.summaries]
+
+
+def _case(sim: int, a: str, ta: float, b: str, tb: float) -> dict:
+    return {"name": f"sim{sim}", "events": [{"fault": a, "time": ta}, {"fault": b, "time": tb}]}
+
+
+def part_sizes(args, ramp: float | None = None) -> dict:
+    out = {}
+    for sim in (1, 2):
+        a, b = FIRST[sim]
+        r = ramp or 0.0
+        t2 = 1.2 if not r else 1.5 + r
+        dur = 2.0 if not r else 2.5 + 2 * r
+        sc = _scenario(sim, dur)
+        case = {
+            "name": f"sim{sim}",
+            "events": [{"fault": a, "time": 0.5}, {"fault": b, "time": t2}],
+        }
+        out[f"sim{sim}"] = _sweep(sc, [case], args, magnitudes=MAGS, ramps=[r], fault_free=False)
+    return out
+
+
+def part_faultfree(args) -> dict:
+    sc = _scenario(1, args.duration)
+    return {"faultfree": _sweep(sc, [], args, fault_free=True)}
+
+
+def part_intermittent(args) -> dict:
+    out = {}
+    for sim, fault in ((2, "air_in_oil"), (1, "leakage")):
+        sc = _scenario(sim, 6.0)
+        case = {
+            "name": f"{fault}-intermittent",
+            "events": [{"fault": fault, "time": [0.5, 1.0], "duration": [2.0, 4.0]}],
+        }
+        out[f"sim{sim}"] = _sweep(sc, [case], args, magnitudes=[1.0], fault_free=False)
+    return out
+
+
+def part_paper(args) -> dict:
+    out = {}
+    for sim in (1, 2):
+        a, b = FIRST[sim]
+        sc = _scenario(sim, 4.0)
+        case = {
+            "name": f"sim{sim}",
+            "events": [{"fault": a, "time": 1.0}, {"fault": b, "time": 2.5}],
+        }
+        out[f"sim{sim}"] = _sweep(sc, [case], args, magnitudes=[1.0], fault_free=True)
+    return out
+
+
+def part_cost(args) -> dict:
+    from uimm_jax.studies import sweep as sw
+    from uimm_jax.studies.run import filter_measurements, setup_scenario, simulate_scenario
+
+    sc = _scenario(1, 1.0)
+    setups = {m: setup_scenario(sc, m) for m in ("uimm", "uimm-est")}
+    truth = simulate_scenario(setups["uimm"], 0)
+    single = {m: [] for m in setups}
+    for _ in range(3):  # interleaved
+        for m, st in setups.items():
+            tim: list = []
+            filter_measurements(st, truth["y"], truth["u"], chunk=2000, timings=tim)
+            steps = sum(n for n, _ in tim[1:])
+            single[m].append(1e6 * sum(s for _, s in tim[1:]) / steps)
+    batch = {m: [] for m in setups}
+    B, N = 64, 4000
+    onset = np.tile(np.array([[1000, 2500, -1]]), (B, 1))
+    keys = sw.run_keys(0, B)[0]
+    for _ in range(2):
+        for m, st in setups.items():
+            plan, k, carry = sw.batch_inputs(
+                st, onset, np.ones((B, 3)), np.ones(B), keys, 4, np.float64
+            )
+            sw.run_batch(st, plan, k, carry, N, N)  # compile
+            t0 = time.perf_counter()
+            jax.block_until_ready(sw.run_batch(st, plan, k, carry, N, N))
+            batch[m].append(1e6 * (time.perf_counter() - t0) / (B * N))
+    return {
+        "single_run_us_per_step": single,
+        "batch64_us_per_run_step_incl_truth": batch,
+        "ratio_single_best": min(single["uimm-est"]) / min(single["uimm"]),
+        "ratio_batch_best": min(batch["uimm-est"]) / min(batch["uimm"]),
+        "monte_carlo_run_steps_per_s_uimm_est": 1e6 / min(batch["uimm-est"]),
+    }
+
+
+def part_staircase(args) -> dict:
+    """The truth's ramp staircase against a per-step ramp (one stair per sample), no noise."""
+    import uimm_jax.engine.truth as tr
+    from uimm_jax.studies.run import setup_scenario, simulate_scenario
+
+    out = {}
+    for sim, fault, mag in ((2, "air_in_oil", 3.0), (1, "valve_wear", 3.0), (1, "leakage", 3.0)):
+        d = scenario_to_dict(load_scenario(REPO / "scenarios" / f"paper_sim{sim}_tuned.toml"))
+        d["duration"] = 1.6
+        d["noise"]["process"] = [0.0, 0.0, 0.0]  # x has no noise; y is not compared
+        d["events"] = [{"time": 0.3, "fault": fault, "magnitude": mag, "ramp": args.ramps}]
+        sc = parse_scenario(d)
+        xs = {}
+        for stairs in (tr.RAMP_STAIRS, int(round(args.ramps / sc.dt))):
+            fns = (tr.fault_breakpoints, tr.plan_phases)
+            old = [f.__defaults__ for f in fns]
+            for f, o in zip(fns, old, strict=True):
+                f.__defaults__ = o[:-1] + (stairs,)
+            try:
+                xs[stairs] = simulate_scenario(setup_scenario(sc, "uimm"), 0)["x"]
+            finally:
+                for f, o in zip(fns, old, strict=True):
+                    f.__defaults__ = o
+        a, b = xs.values()
+        sigma = np.sqrt(np.array([1e-12, 1e-12, 1.0]))  # the measurement noise sd
+        out[f"{fault} x{mag}, ramp {args.ramps} s"] = {
+            "max_abs_state_diff_in_measurement_sd": (np.max(np.abs(a - b), 0) / sigma).tolist(),
+            "stairs": tr.RAMP_STAIRS,
+        }
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument(
+        "part",
+        choices=["sizes", "ramps", "faultfree", "intermittent", "paper", "cost", "staircase"],
+    )
+    p.add_argument("--runs", type=int, default=64)
+    p.add_argument("--methods", nargs="+", default=["uimm-est"])
+    p.add_argument("--ramps", type=float, default=1.0)
+    p.add_argument("--duration", type=float, default=2.0)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--batch", type=int, default=128)
+    p.add_argument("--tag", default="")
+    p.add_argument("--walk", type=float, default=None, help="EstSettings.walk (exploration)")
+    args = p.parse_args()
+    if args.walk is not None:
+        import uimm_jax.engine.uimm_est as ue
+
+        d = ue.EstSettings.__new__.__defaults__
+        ue.EstSettings.__new__.__defaults__ = (args.walk,) + d[1:]
+    t0 = time.perf_counter()
+    if args.part == "sizes":
+        res = part_sizes(args)
+    elif args.part == "ramps":
+        res = part_sizes(args, ramp=args.ramps)
+    else:
+        res = globals()[f"part_{args.part}"](args)
+    res["command"] = " ".join(["python", "benchmarks/faults_unknown_size.py"] + sys.argv[1:])
+    res["wall_s"] = time.perf_counter() - t0
+    OUT.mkdir(parents=True, exist_ok=True)
+    name = f"{args.part}{'_' + str(args.ramps) if args.part == 'ramps' else ''}"
+    name += f"_{'-'.join(args.methods)}_{args.runs}{args.tag}.json"
+    (OUT / name).write_text(json.dumps(res, indent=1, default=float))
+    print(f"wrote {OUT / name}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,126 @@
+"""Dynamics with fault magnitudes in the state: an EKF through the plant's parameters.
+
+Every model of a bank estimates ``x_aug = [x; a]``, the plant state and the magnitudes
+``a (F,)`` of the fault library (one meaning per fault:
+:func:`uimm_jax.engine.bank.param_at_magnitude`).  A model uses the magnitudes of the
+faults of its fault set (``use``); the others do not enter its dynamics.  The magnitudes
+follow a random walk (``a[k+1] = a[k] + w``, the noise is the diagnoser's).
+
+The discretised dynamics depend on ``a`` through the parameters and, for a continuous
+plant, through the matrix exponential.  Discretising at every step would cost a matrix
+exponential per model and step, so the cache holds the dynamics at reference magnitudes
+``a0`` and their derivatives ``d cache / d a_k`` (``jax.jvp`` through
+``prepare(theta(a))``, i.e. through ``expm``), and the step uses the first-order
+expansion ``cache(a) = cache(a0) + sum_k (a_k - a0_k) d cache / d a_k``.  The transition
+Jacobian with respect to ``a_k`` is the ``jax.jvp`` of the base ``predict`` along
+``d cache / d a_k`` (exact for a linear plant: ``dAd_k x + dBd_k u``); likewise for the
+measurement.  The diagnoser re-centres ``a0`` on the estimates (a new cache) whenever an
+estimate moves more than a tolerance from its reference (:mod:`uimm_jax.engine.uimm_est`),
+so the expansion stays local: a moving-bank EKF.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple, final
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from uimm_jax.engine.bank import FaultTable, thetas_for_magnitudes
+
+__all__ = ["AugCache", "AugmentedDynamics"]
+
+
+class AugCache(NamedTuple):
+    """The cache of an augmented bank (batch ``(M, *runs)`` last).
+
+    Attributes:
+        base: the base dynamics' cache at ``a0``.
+        jac: ``F`` base-shaped caches (a tuple), the derivative of the cache in ``a_k``.
+        a0: ``(F, M, *runs)`` reference magnitudes of the expansion.
+        use: ``(F, M, *runs)`` bool, the faults in each model's set.
+    """
+
+    base: Any
+    jac: tuple
+    a0: jax.Array
+    use: jax.Array
+
+
+def _full(a, shape, dtype) -> jax.Array:
+    """A Jacobian (possibly a NumPy constant without batch axes) broadcast to ``shape``."""
+    a = jnp.asarray(a, dtype)
+    a = a.reshape(a.shape + (1,) * (len(shape) - a.ndim))
+    return jnp.broadcast_to(a, shape)
+
+
+@final
+class AugmentedDynamics:
+    """A plant's dynamics with its fault magnitudes appended to the state (module doc).
+
+    Args:
+        base: the plant's dynamics object (:class:`~uimm_jax.engine.dynamics.Dynamics`).
+        table: the fault table (the magnitudes' meaning).
+        n: the plant's state dimension.
+    """
+
+    linear = False
+
+    def __init__(self, base: Any, table: FaultTable, n: int):
+        self.base = base
+        self.table = table
+        self.n = int(n)
+        self.F = table.num_faults
+
+    def prepare(self, sets: jax.Array, a0: jax.Array) -> AugCache:
+        """The cache of fault sets ``(F, *batch)`` at reference magnitudes ``(F, *batch)``."""
+        dtype = a0.dtype
+
+        def cache_of(a):
+            return self.base.prepare(thetas_for_magnitudes(self.table, sets, a, dtype))
+
+        base = cache_of(a0)
+        jac = []
+        for k in range(self.F):
+            tangent = jnp.zeros_like(a0).at[k].set(1.0)
+            jac.append(jax.jvp(cache_of, (a0,), (tangent,))[1])
+        return AugCache(base, tuple(jac), a0, sets)
+
+    def _expanded(self, cache: AugCache, a: jax.Array):
+        da = jnp.where(cache.use, a - cache.a0, 0.0)
+        out = cache.base
+        for k in range(self.F):
+            out = jax.tree.map(lambda c, d, k=k: c + d * da[k], out, cache.jac[k])
+        return out
+
+    def _with_a(self, cache: AugCache, xa: jax.Array, fn):
+        """``fn(c) -> (value, Jx)`` at the expanded cache, and ``d value / d a`` ``(r, F, *b)``."""
+        c = self._expanded(cache, xa[self.n :])
+        value, jx = fn(c)
+        cols = []
+        for k in range(self.F):
+            _, dv = jax.jvp(lambda cc: fn(cc)[0], (c,), (cache.jac[k],))
+            cols.append(jnp.where(cache.use[k], dv, 0.0))
+        return value, jx, jnp.stack(cols, axis=1)
+
+    def predict(self, cache: AugCache, xa: jax.Array, u: jax.Array):
+        """``[x_pred; a]`` and the augmented Jacobian ``[[Fx, Fa], [0, I]]``."""
+        n, F = self.n, self.F
+        x = xa[:n]
+        xp, Fx, Fa = self._with_a(cache, xa, lambda c: self.base.predict(c, x, u))
+        batch = xa.shape[1:]
+        Fx = _full(Fx, (n, n) + batch, xa.dtype)
+        eye = jnp.broadcast_to(np.eye(F).reshape((F, F) + (1,) * len(batch)), (F, F) + batch)
+        top = jnp.concatenate([Fx, Fa], axis=1)
+        bottom = jnp.concatenate([jnp.zeros((F, n) + batch, xa.dtype), eye.astype(xa.dtype)], 1)
+        return jnp.concatenate([xp, xa[n:]], axis=0), jnp.concatenate([top, bottom], axis=0)
+
+    def observe(self, cache: AugCache, xa: jax.Array):
+        """``y_pred`` and ``[Hx, Ha]``."""
+        n = self.n
+        x = xa[:n]
+        yp, Hx, Ha = self._with_a(cache, xa, lambda c: self.base.observe(c, x))
+        m = yp.shape[0]
+        Hx = _full(Hx, (m, n) + xa.shape[1:], xa.dtype)
+        return yp, jnp.concatenate([Hx, Ha], axis=1)

@@ -1,0 +1,405 @@
+"""The size-estimating UIMM (``method = "uimm-est"``): faults of any size, growing, ending.
+
+The fixed-size UIMM (:mod:`uimm_jax.engine.uimm`) holds each fault at its library value,
+so a fault of another size leaves a residual that the bank explains by declaring another
+fault, for good.  Here every model estimates the magnitudes of the faults of its set with
+its state (an EKF through the parameters, :class:`~uimm_jax.engine.augmented.AugmentedDynamics`;
+docs/design.md section "Faults of unknown size" says why this design was chosen).
+
+**Bank** (``F + 1`` models, linear in ``F``; the model count of the UIMM).  With the
+declared set ``D``, model 0 is ``D`` and slot ``j + 1`` is ``D + f_j`` when ``j`` is not
+declared (the hypothesis "fault j appeared") and ``D - f_j`` when it is (the hypothesis
+"fault j ended": the retraction hypothesis, design.md section 5).  A model estimates the
+magnitude of every fault of its set (a random walk of variance ``walk`` per step), so
+after a declaration every model carries the *estimated* size, and keeps refining it.
+
+**Magnitudes a model does not use** are reset, before each step, with no correlation, to
+the prior ``N(prior_mean, prior_sd^2)`` for an undeclared fault and to model 0's estimate
+for a declared one: mixing (eqs. 15-17) then hands a hypothesis that was improbable the
+prior for its new fault, and the retraction hypothesis leaves a declared estimate alone.
+An undeclared hypothesis' own magnitude is kept ``>= declare_min`` (and its standard
+deviation ``>= floor_sd``), so that it means "a fault worth declaring" and does not
+settle on nominal in fault-free data.
+
+**Decisions** (eq. 29 and persistence, :func:`uimm_jax.engine.decision.decide`):
+
+* declare ``j`` when ``D + f_j`` is the most probable model, with ``mu >= threshold`` for
+  ``hold`` samples and its estimate of ``a_j`` at least ``declare_min``;
+* retract ``j`` when ``D - f_j`` wins in the same way, or when model 0's estimate of
+  ``a_j`` stays below ``retract_below`` for ``hold`` samples (the estimate returned to
+  nominal).
+
+On either, the winner's posterior goes to every model, except that the winner's slot
+takes the old model 0's (the two swap meaning: after declaring ``j``, ``D_new - f_j`` is
+the old ``D``), the two swap probabilities, and the cache is rebuilt for the new sets.
+The cache's expansion point is re-centred whenever an estimate in use by a model of
+probability >= 1 % moves more than ``relin`` from it.  Rebuilds happen under
+``lax.cond``: only on steps that need them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any, ClassVar, NamedTuple, final
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from uimm_jax.engine.augmented import AugCache, AugmentedDynamics
+from uimm_jax.engine.bank import set_codes
+from uimm_jax.engine.decision import decide
+from uimm_jax.engine.imm import IMMParams, IMMState, StepInfo, imm_step
+from uimm_jax.engine.uimm import Diagnoser, DiagParams, _pick_model
+from uimm_jax.engine.uimm import build_diagnoser as _build_fixed
+
+__all__ = ["EstInfo", "EstSettings", "EstState", "UIMMEstDiagnoser", "build_diagnoser"]
+
+Z95 = 1.959963984540054
+"""The two-sided 95 % normal quantile (magnitude intervals)."""
+
+
+class EstSettings(NamedTuple):
+    """Static settings of the magnitude estimation (module doc; magnitude units).
+
+    Attributes:
+        walk: random-walk standard deviation of a magnitude per step.
+        prior_mean: prior magnitude of a new fault (1: the library's value).
+        prior_sd: its standard deviation.
+        floor_sd: smallest standard deviation of an undeclared hypothesis' magnitude.
+        declare_min: a fault is declared only if its estimate is at least this.
+        retract_below: a declared fault whose estimate stays below this is retracted.
+        relin: re-centre the expansion when an estimate moves this far from it.
+    """
+
+    walk: float = 3e-4
+    prior_mean: float = 1.0
+    prior_sd: float = 1.0
+    floor_sd: float = 0.0
+    declare_min: float = 0.15
+    retract_below: float = 0.1
+    relin: float = 0.02
+
+
+class EstState(NamedTuple):
+    """Carried state of :class:`UIMMEstDiagnoser`.
+
+    Attributes:
+        imm: the bank's :class:`~uimm_jax.engine.imm.IMMState` over ``[x; a]``.
+        cache: the :class:`~uimm_jax.engine.augmented.AugCache`.
+        declared: ``(F, *runs)`` bool, the declared set ``D``.
+        run_model: ``(*runs,)`` int32, the model whose run counter is active.
+        run_len: ``(*runs,)`` int32, how many samples it has qualified.
+        low_len: ``(F, *runs)`` int32, samples a declared estimate has stayed low.
+    """
+
+    imm: IMMState
+    cache: AugCache
+    declared: jax.Array
+    run_model: jax.Array
+    run_len: jax.Array
+    low_len: jax.Array
+
+
+class EstInfo(NamedTuple):
+    """Per-step outputs: those of :class:`~uimm_jax.engine.uimm.DiagInfo` and the sizes.
+
+    Attributes:
+        step: the IMM :class:`~uimm_jax.engine.imm.StepInfo` (plant state only).
+        recognised: ``(*runs,)`` int32 code of the recognised fault set.
+        declared: ``(*runs,)`` int32 code of the declared set after this step.
+        declared_now: ``(*runs,)`` bool, a declaration or retraction happened.
+        magnitude: ``(F, *runs)`` estimated magnitude of each fault: model 0's for a
+            declared fault, its hypothesis' for the others.
+        magnitude_sd: ``(F, *runs)`` its standard deviation.
+        retracted_now: ``(*runs,)`` bool, a retraction happened at this step.
+    """
+
+    step: StepInfo
+    recognised: jax.Array
+    declared: jax.Array
+    declared_now: jax.Array
+    magnitude: jax.Array
+    magnitude_sd: jax.Array
+    retracted_now: jax.Array
+
+
+def _slot_of(declared: jax.Array) -> jax.Array:
+    """``(F, *runs)`` model holding each fault's magnitude estimate (0 if declared)."""
+    F = declared.shape[0]
+    own = np.arange(1, F + 1).reshape((F,) + (1,) * (declared.ndim - 1))
+    return jnp.where(declared, 0, own)
+
+
+@final
+@dataclasses.dataclass(frozen=True, eq=False)
+class UIMMEstDiagnoser(Diagnoser):
+    """UIMM whose models estimate their faults' magnitudes (see the module doc)."""
+
+    method: ClassVar[str] = "uimm-est"
+    settings: EstSettings = EstSettings()
+
+    @property
+    def num_models(self) -> int:
+        """``F + 1``."""
+        return self.num_faults + 1
+
+    @property
+    def aug(self) -> AugmentedDynamics:
+        """The augmented dynamics (state ``[x; a]``)."""
+        return AugmentedDynamics(self.dyn, self.table, self.dyn.n)
+
+    def model_sets(self, declared: jax.Array) -> jax.Array:
+        """``(F, F + 1, *runs)``: ``[D, D xor f_1, ..., D xor f_F]``."""
+        F = declared.shape[0]
+        flip = np.concatenate([np.zeros((F, 1), bool), np.eye(F, dtype=bool)], axis=1)
+        return declared[:, None] ^ flip.reshape((F, F + 1) + (1,) * (declared.ndim - 1))
+
+    def model_labels(self) -> list[str]:
+        """Slots are relative to the declared set ``D``."""
+        return ["D (no change)"] + [f"D +/- {n}" for n in self.table.names]
+
+    def _active(self, declared):
+        return None
+
+    def _candidate_set(self, cand, declared):
+        models = np.arange(1, self.num_models).reshape((-1,) + (1,) * cand.ndim)
+        return declared ^ (cand == models)
+
+    def true_set_log_prob(self, log_mode_probs, declared, code):
+        """Log mode probability of the fault set ``code`` (the FIA term).
+
+        Model 0 if ``code == D``, model ``j + 1`` if ``code`` and ``D`` differ by fault
+        ``j`` alone, else no model (``-inf``).
+        """
+        diff = jnp.asarray(code, jnp.int32) ^ set_codes(declared)
+        one = (diff != 0) & ((diff & (diff - 1)) == 0)
+        bits = np.arange(self.num_faults, dtype=np.int32).reshape((-1,) + (1,) * diff.ndim)
+        j = jnp.sum(jnp.where((diff >> bits) & 1 > 0, bits, 0), axis=0)
+        return _pick_model(log_mode_probs, jnp.where(diff == 0, 0, jnp.where(one, j + 1, -1)))
+
+    def _cache(self, declared: jax.Array, a0: jax.Array) -> AugCache:
+        """The augmented cache of the bank of ``declared`` at magnitudes ``(F, M, *runs)``."""
+        return self.aug.prepare(self.model_sets(declared), a0)
+
+    def prepare(self, declared: jax.Array, dtype) -> Any:
+        """The cache at the prior magnitudes (see :meth:`init`)."""
+        return _jit_cache(self, declared, jnp.dtype(dtype))
+
+    def init(self, mean0, cov0, mode_probs0, runs: tuple[int, ...] = (), dtype=None) -> EstState:
+        """Initial state: ``[mean0; prior_mean]``, ``blockdiag(cov0, prior_sd^2 I)``."""
+        dtype = dtype or jnp.asarray(0.0).dtype
+        F, s = self.num_faults, self.settings
+        n = np.asarray(mean0).shape[0]
+        mean_a = np.concatenate([np.asarray(mean0, np.float64), np.full(F, s.prior_mean)])
+        cov_a = np.zeros((n + F, n + F))
+        cov_a[:n, :n] = np.asarray(cov0, np.float64)
+        cov_a[n:, n:] = np.eye(F) * s.prior_sd**2
+        base = super().init(mean_a, cov_a, mode_probs0, runs, dtype)
+        return EstState(
+            base.imm,
+            base.cache,
+            base.declared,
+            base.run_model,
+            base.run_len,
+            jnp.zeros((F,) + tuple(runs), jnp.int32),
+        )
+
+    def _reset_unused(self, st: IMMState, use: jax.Array, declared: jax.Array) -> IMMState:
+        """Magnitudes a model does not use: to the bank's belief about them, uncorrelated.
+
+        For an undeclared fault that is the prior of a new fault, for a declared one
+        model 0's current estimate (so that mixing with the retraction hypothesis "D - f_j"
+        leaves the estimate of ``a_j`` alone).
+        """
+        n, F, s = self.dyn.n, self.num_faults, self.settings
+        free = jnp.concatenate([jnp.ones((n,) + use.shape[1:], bool), use], axis=0)
+        var0 = jnp.moveaxis(jnp.diagonal(st.cov[n:, n:, 0], axis1=0, axis2=1), -1, 0)
+        tm = jnp.where(declared, st.mean[n:, 0], s.prior_mean)[:, None]  # (F, 1, *runs)
+        tv = jnp.where(declared, var0, s.prior_sd**2)[:, None]
+        mean = jnp.concatenate([st.mean[:n], jnp.where(use, st.mean[n:], tm)], 0)
+        keep = free[:, None] & free[None]
+        eye = np.eye(n + F, dtype=bool)[n:].reshape((F, n + F) + (1,) * (use.ndim - 1))
+        diag_t = jnp.where(eye, tv[:, None], 0.0)  # (F, n+F, 1, *runs): target variances
+        target = jnp.concatenate([jnp.zeros((n, n + F) + diag_t.shape[2:], st.cov.dtype), diag_t])
+        cov = jnp.where(keep, st.cov, target)
+        return IMMState(mean, cov, st.log_mode_probs)
+
+    def _floor(self, st: IMMState, declared: jax.Array) -> IMMState:
+        """An undeclared hypothesis' own magnitude: mean ``>= declare_min``, sd ``>= floor_sd``.
+
+        The hypothesis is "fault j of a size worth declaring": without the bound it would
+        settle on nominal in fault-free data and be slow to follow a fault that appears.
+        Raising a variance adds a PSD matrix (the covariance stays PSD).
+        """
+        n, F, s = self.dyn.n, self.num_faults, self.settings
+        hyp = (~declared)[:, None] & np.concatenate(
+            [np.zeros((F, 1), bool), np.eye(F, dtype=bool)], axis=1
+        ).reshape((F, F + 1) + (1,) * (declared.ndim - 1))  # (F, M, *runs)
+        mean = st.mean.at[n:].set(
+            jnp.where(hyp, jnp.maximum(st.mean[n:], s.declare_min), st.mean[n:])
+        )
+        var = jnp.moveaxis(jnp.diagonal(st.cov[n:, n:], axis1=0, axis2=1), -1, 0)
+        add = jnp.where(hyp, jnp.maximum(s.floor_sd**2 - var, 0.0), 0.0)
+        eye = np.eye(F).reshape((F, F) + (1,) * (add.ndim - 1))
+        cov = st.cov.at[n:, n:].add(eye * add[None])
+        return st._replace(mean=mean, cov=cov)
+
+    def step(
+        self,
+        state: EstState,
+        params: DiagParams,
+        u: jax.Array,
+        y: jax.Array,
+        *,
+        with_cov: bool = True,
+    ) -> tuple[EstState, EstInfo]:
+        """One step: IMM cycle over ``[x; a]``, decisions, hand-over, re-centring."""
+        n, F, s = self.dyn.n, self.num_faults, self.settings
+        declared = state.declared
+        dtype = state.imm.mean.dtype
+        imm0 = self._reset_unused(state.imm, state.cache.use, declared)
+        q_aug = jnp.zeros((n + F, n + F), dtype).at[:n, :n].set(params.imm.Q)
+        q_aug = q_aug.at[n:, n:].set(jnp.eye(F, dtype=dtype) * s.walk**2)
+        imm_params = IMMParams(params.imm.log_transition, q_aug, params.imm.R)
+        imm_state, info = imm_step(
+            self.aug, imm0, state.cache, imm_params, u, y, gate=self.gate, with_cov=with_cov
+        )
+        imm_state = self._floor(imm_state, declared)
+        mags = imm_state.mean[n:]  # (F, M, *runs)
+        var = jnp.moveaxis(jnp.diagonal(imm_state.cov[n:, n:], axis1=0, axis2=1), -1, 0)
+        slot = _slot_of(declared)
+        pick = slot[:, None] == np.arange(self.num_models).reshape((1, -1) + (1,) * (slot.ndim - 1))
+        est = jnp.sum(jnp.where(pick, mags, 0.0), axis=1)  # (F, *runs)
+        est_sd = jnp.sqrt(jnp.maximum(jnp.sum(jnp.where(pick, var, 0.0), axis=1), 0.0))
+
+        def cand_set(c):
+            full = self._candidate_set(c, declared)
+            new = full & ~declared
+            big = est >= s.declare_min
+            return jnp.where(jnp.any(new & ~big, axis=0), declared, full)
+
+        dec = decide(
+            imm_state.log_mode_probs,
+            cand_set,
+            declared,
+            state.run_model,
+            state.run_len,
+            params.threshold,
+            params.hold,
+        )
+        # Retraction: the "D - f_j" hypothesis wins (same rule), or the estimate stays low.
+        top = jnp.max(imm_state.log_mode_probs, axis=0)
+        sure = top >= jnp.log(jnp.asarray(params.threshold, dtype))
+        models = np.arange(1, self.num_models).reshape((-1,) + (1,) * dec.candidate.ndim)
+        ret_hyp = (dec.candidate == models) & declared & sure  # (F, *runs)
+        low = declared & (est < s.retract_below)
+        low_len = jnp.where(low | ret_hyp, state.low_len + 1, 0)
+        retract = low_len >= params.hold
+        retract = retract & ~dec.declared_now  # one change per step
+        low_len = jnp.where(retract, 0, low_len).astype(jnp.int32)
+        any_ret = jnp.any(retract, axis=0)
+        # The winner of a retraction: the slot of the first retracted fault.
+        first = jnp.argmax(retract, axis=0).astype(jnp.int32) + 1
+        winner = jnp.where(any_ret, first, dec.candidate)
+        changed = dec.declared_now | any_ret
+        new_declared = jnp.where(retract, False, dec.declared)
+        imm_state, cache = self._handover(imm_state, state.cache, winner, changed, new_declared)
+        new_state = EstState(
+            imm_state,
+            cache,
+            new_declared,
+            dec.candidate,
+            jnp.where(any_ret, 0, dec.run_len),
+            low_len,
+        )
+        recognised = jnp.where(any_ret, new_declared, dec.candidate_set)
+        step_info = info._replace(
+            mean=info.mean[:n], cov=info.cov[:n, :n] if with_cov else info.cov
+        )
+        out = EstInfo(
+            step=step_info,
+            recognised=set_codes(recognised),
+            declared=set_codes(new_declared),
+            declared_now=changed,
+            magnitude=est,
+            magnitude_sd=est_sd,
+            retracted_now=any_ret,
+        )
+        return new_state, out
+
+    def _handover(self, st: IMMState, cache: AugCache, winner, changed, new_declared):
+        """Hand-over on a change of ``D`` and re-centring of the expansion (module doc)."""
+        n, s = self.dyn.n, self.settings
+        models = np.arange(self.num_models).reshape((-1,) + (1,) * winner.ndim)
+        # Re-centre when a model that matters (mu >= 1 %) has moved from its expansion point.
+        drift = jnp.where(cache.use, jnp.abs(st.mean[n:] - cache.a0), 0.0)
+        matters = st.log_mode_probs >= np.log(0.01)
+        recentre = jnp.any((drift > s.relin) & matters)
+
+        def rebuild(operand):
+            st, c = operand
+            onehot = (winner == models).astype(st.mean.dtype)  # (M, *runs)
+            zero = (models == 0).astype(st.mean.dtype)
+            win_mean = jnp.sum(st.mean * onehot, axis=1, keepdims=True)
+            win_cov = jnp.sum(st.cov * onehot, axis=2, keepdims=True)
+            old0_mean = jnp.sum(st.mean * zero, axis=1, keepdims=True)
+            old0_cov = jnp.sum(st.cov * zero, axis=2, keepdims=True)
+            is_win = winner == models
+            mean = jnp.where(is_win, old0_mean, win_mean)
+            cov = jnp.where(is_win, old0_cov, win_cov)
+            mean = jnp.where(changed, mean, st.mean)
+            cov = jnp.where(changed, cov, st.cov)
+            lm = st.log_mode_probs
+            lw = jnp.sum(jnp.where(is_win, lm, 0.0), axis=0)
+            l0 = lm[0]
+            swapped = jnp.where(models == 0, lw, jnp.where(is_win, l0, lm))
+            lm = jnp.where(changed, swapped, lm)
+            fresh = self._cache(new_declared, mean[n:])
+            return IMMState(mean, cov, lm), fresh
+
+        return jax.lax.cond(jnp.any(changed) | recentre, rebuild, lambda o: o, (st, cache))
+
+
+@functools.partial(jax.jit, static_argnums=(0, 2))
+def _jit_cache(diag: UIMMEstDiagnoser, declared: jax.Array, dtype) -> AugCache:
+    """The initial augmented cache (every magnitude at the prior mean), compiled once."""
+    shape = (diag.num_faults, diag.num_models) + declared.shape[1:]
+    a0 = jnp.full(shape, diag.settings.prior_mean, dtype)
+    return diag._cache(declared, a0)
+
+
+def build_diagnoser(
+    method: str,
+    dyn: Any,
+    table,
+    *,
+    gate: float | None = None,
+    settings: EstSettings | None = None,
+) -> Diagnoser:
+    """Build a diagnoser: ``"uimm"``, ``"imm"`` or ``"uimm-est"`` (this module).
+
+    Args:
+        method: the method's name.
+        dyn: dynamics object for the plant (:func:`uimm_jax.plants.make_dynamics`).
+        table: the fault table of the bank.
+        gate: optional chi-square innovation gate.
+        settings: :class:`EstSettings` of ``"uimm-est"`` (default: the defaults).
+    """
+    if method != UIMMEstDiagnoser.method:
+        if settings is not None:
+            raise ValueError(f"settings: only method 'uimm-est' takes them, not {method!r}")
+        try:
+            return _build_fixed(method, dyn, table, gate=gate)
+        except ValueError as err:
+            if str(err).startswith("method:"):
+                raise ValueError(
+                    f"method: expected 'uimm', 'imm' or 'uimm-est', got {method!r}"
+                ) from None
+            raise
+    fixed = _build_fixed("uimm", dyn, table, gate=gate)  # the shared argument checks
+    settings = EstSettings() if settings is None else settings
+    if not isinstance(settings, EstSettings):
+        raise TypeError(f"settings: expected EstSettings, got {type(settings).__name__}")
+    return UIMMEstDiagnoser(fixed.dyn, fixed.table, fixed.gate, settings)
