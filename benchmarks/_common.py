@@ -51,3 +51,20 @@ def ram_bytes() -> float:
     except OSError:
         pass
     return float("nan")
+
+
+def paper_sim1(num_steps: int, source: str):
+    """``paper_sim1_tuned`` shortened to ``num_steps`` samples, faults at 30 % and 60 %."""
+    from uimm_jax.scenario.parse import load_scenario, parse_scenario
+    from uimm_jax.scenario.write import scenario_to_dict
+
+    root = Path(__file__).resolve().parents[1]
+    d = scenario_to_dict(load_scenario(root / "scenarios" / "paper_sim1_tuned.toml"))
+    dt = d["dt"]
+    d["duration"] = num_steps * dt
+    d["events"] = [
+        {"fault": "valve_wear", "time": round(0.3 * num_steps) * dt},
+        {"fault": "leakage", "time": round(0.6 * num_steps) * dt},
+    ]
+    d.pop("sweep", None)
+    return parse_scenario(d, source=source)

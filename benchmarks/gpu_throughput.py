@@ -27,22 +27,13 @@ import sys
 import time
 from pathlib import Path
 
+from _common import paper_sim1
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _scenario(num_steps: int):
-    from uimm_jax.scenario.parse import load_scenario, parse_scenario
-    from uimm_jax.scenario.write import scenario_to_dict
-
-    d = scenario_to_dict(load_scenario(ROOT / "scenarios" / "paper_sim1_tuned.toml"))
-    dt = d["dt"]
-    d["duration"] = num_steps * dt
-    d["events"] = [
-        {"fault": "valve_wear", "time": round(0.3 * num_steps) * dt},
-        {"fault": "leakage", "time": round(0.6 * num_steps) * dt},
-    ]
-    d.pop("sweep", None)
-    return parse_scenario(d, source="gpu_throughput")
+    return paper_sim1(num_steps, "gpu_throughput")
 
 
 def _peak_gib() -> float | None:
