@@ -240,7 +240,7 @@ def imm_step(
     health = jnp.where(jnp.any(repaired, axis=0), HEALTH_COV_REPAIRED, 0)
     health |= jnp.where(jnp.any(~jnp.isfinite(y), axis=0), HEALTH_MISSING, 0)
     if gate is not None:
-        health |= jnp.where(accept(res.nis), 0, HEALTH_GATED)
+        health |= jnp.where(res.accepted, 0, HEALTH_GATED)
     # Non-finite guard: a model whose update is not finite keeps its previous posterior.
     finite = (
         jnp.isfinite(ll)

@@ -62,6 +62,8 @@ class UpdateResult(NamedTuple):
         nis: ``(*batch)`` normalised innovation squared ``e' S^-1 e`` (for gating).
         repaired: ``(*batch)`` true where ``S`` was not numerically positive definite.
         num_observed: ``(*batch)`` number of observed (finite) channels.
+        accepted: the ``accept`` predicate's verdict (see :func:`kf_update`), or ``None``
+            when no predicate was given.
     """
 
     mean: jax.Array
@@ -70,6 +72,7 @@ class UpdateResult(NamedTuple):
     nis: jax.Array
     repaired: jax.Array
     num_observed: jax.Array
+    accepted: jax.Array | None = None
 
 
 def kf_predict_cov(F, P: jax.Array, Q: jax.Array) -> jax.Array:
@@ -126,6 +129,7 @@ def kf_update(
     num_obs = jnp.sum(valid, axis=0, dtype=jnp.int32)
     loglik = -0.5 * (nis + logdet) - (0.5 * LOG_2PI) * num_obs.astype(nis.dtype)
     W = bk.mmt(PHt, Linv)  # P H' L^-T, (n, m, *batch)
+    keep = None
     if accept is not None:
         keep = accept(nis)
         W = jnp.where(keep, W, 0.0)  # K = 0: x and P stay as predicted
@@ -157,7 +161,7 @@ def kf_update(
     # the batch needs it.  Always computing both measured 1.27x against 1.11x the
     # reference step at one run, 1.66x against 1.28x at 64.
     P_new = jax.lax.cond(jnp.any(use_joseph), per_filter, standard, None)
-    return UpdateResult(x_new, P_new, loglik, nis, repaired, num_obs)
+    return UpdateResult(x_new, P_new, loglik, nis, repaired, num_obs, keep)
 
 
 def _floor_for(dtype) -> float:
