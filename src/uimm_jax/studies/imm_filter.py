@@ -87,7 +87,7 @@ def _warn_if_float32(dtype) -> None:
             "uimm_jax is running in float32 because jax_enable_x64 is off; float64 is the "
             "reference. Call jax.config.update('jax_enable_x64', True) before building arrays.",
             UIMMWarning,
-            stacklevel=3,
+            stacklevel=4,
         )
 
 
@@ -137,39 +137,25 @@ def _imm_scan(dyn, cache, params, state0, inputs, measurements, gate, keep_model
     return (jnp.exp(out[0]),) + out
 
 
-def imm_filter(
-    bank: LinearGaussianBank,
-    transition,
-    initial_mode_probs,
-    initial_mean,
-    initial_cov,
-    inputs,
-    measurements,
-    *,
-    gate: float | None = None,
-    return_model_means: bool = False,
-) -> IMMResult:
-    """Run an IMM filter over a linear-Gaussian bank (paper eqs. 15-31).
+class _Prepared(NamedTuple):
+    """:func:`imm_filter`'s checked arguments in the engine's layout (see :func:`_prepare`)."""
 
-    Args:
-        bank: the models, arrays with a leading model axis (:class:`LinearGaussianBank`).
-        transition: ``(M, M)`` row-stochastic, ``transition[i, j] = P(j at k+1 | i at k)``.
-        initial_mode_probs: ``(M,)``; normalised with a warning if it does not sum to 1.
-        initial_mean: ``(n,)`` for every model, or ``(M, n)`` per model.
-        initial_cov: ``(n, n)`` for every model, or ``(M, n, n)`` per model.
-        inputs: ``(N, p)`` inputs (``None`` when ``p = 0``); step k predicts with
-            ``inputs[k]``.
-        measurements: ``(N, m)``; step k updates with ``measurements[k]``; NaN entries are
-            missing channels.
-        gate: optional chi-square innovation gate (see :func:`uimm_jax.engine.imm.imm_step`).
-        return_model_means: also return the per-model posterior means.
+    dyn: MatrixBankDynamics
+    cache: LinearCache
+    params: IMMParams
+    state0: IMMState
+    inputs: jax.Array
+    measurements: jax.Array
+    gate: float | None
 
-    Returns:
-        An :class:`IMMResult`.
 
-    Raises:
-        ValueError: on inconsistent shapes, a non-stochastic transition matrix or a
-            covariance that is not symmetric PSD; the message names the argument.
+def _prepare(
+    bank, transition, initial_mode_probs, initial_mean, initial_cov, inputs, measurements, gate
+) -> _Prepared:
+    """Check :func:`imm_filter`'s arguments and convert them to the engine's layout.
+
+    Model axis last (``(n, M)``, ``(n, n, M)``), float64 when x64 is on.  Raises the
+    errors documented in :func:`imm_filter`.
     """
     check_bank(bank)
     gate = check_gate(gate)
@@ -239,7 +225,6 @@ def imm_filter(
 
     dtype = jnp.asarray(0.0).dtype  # float64 when x64 is on
     _warn_if_float32(dtype)
-    warn_if_slow()
 
     def bm(a, lead):  # (M, *mat) -> (*mat, M)
         return jnp.asarray(np.moveaxis(a, 0, -1), dtype)
@@ -257,7 +242,48 @@ def imm_filter(
         log_mu0 = np.log(mu0)
     state0 = IMMState(bm(x0, 1), bm(P0, 2), jnp.asarray(log_mu0, dtype))
     us, ys = jnp.asarray(u, dtype), jnp.asarray(y, dtype)
-    mode_probs, *out = _imm_scan(dyn, cache, params, state0, us, ys, gate, return_model_means)
+    return _Prepared(dyn, cache, params, state0, us, ys, gate)
+
+
+def imm_filter(
+    bank: LinearGaussianBank,
+    transition,
+    initial_mode_probs,
+    initial_mean,
+    initial_cov,
+    inputs,
+    measurements,
+    *,
+    gate: float | None = None,
+    return_model_means: bool = False,
+) -> IMMResult:
+    """Run an IMM filter over a linear-Gaussian bank (paper eqs. 15-31).
+
+    Args:
+        bank: the models, arrays with a leading model axis (:class:`LinearGaussianBank`).
+        transition: ``(M, M)`` row-stochastic, ``transition[i, j] = P(j at k+1 | i at k)``.
+        initial_mode_probs: ``(M,)``; normalised with a warning if it does not sum to 1.
+        initial_mean: ``(n,)`` for every model, or ``(M, n)`` per model.
+        initial_cov: ``(n, n)`` for every model, or ``(M, n, n)`` per model.
+        inputs: ``(N, p)`` inputs (``None`` when ``p = 0``); step k predicts with
+            ``inputs[k]``.
+        measurements: ``(N, m)``; step k updates with ``measurements[k]``; NaN entries are
+            missing channels.
+        gate: optional chi-square innovation gate (see :func:`uimm_jax.engine.imm.imm_step`).
+        return_model_means: also return the per-model posterior means.
+
+    Returns:
+        An :class:`IMMResult`.
+
+    Raises:
+        ValueError: on inconsistent shapes, a non-stochastic transition matrix or a
+            covariance that is not symmetric PSD; the message names the argument.
+    """
+    prep = _prepare(
+        bank, transition, initial_mode_probs, initial_mean, initial_cov, inputs, measurements, gate
+    )
+    warn_if_slow()
+    mode_probs, *out = _imm_scan(*prep, return_model_means)
     log_mu, mean, cov, mll, inc, health = out[:6]
     model_mean = jnp.moveaxis(out[6], -1, 1) if return_model_means else None
     return IMMResult(

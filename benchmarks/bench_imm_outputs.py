@@ -1,0 +1,134 @@
+"""Where ``imm_filter``'s time goes against the reference step: its per-step outputs.
+
+``imm_filter`` returns, per step of an M-model bank with n states, ``mode_probs`` and
+``log_mode_probs`` (M each), ``mean`` (n), ``cov`` (n x n), ``model_loglik`` (M) and
+``loglik_increments`` in float64 and ``health`` in int32: 204 bytes per step for the
+actuator bank (M = 4, n = 3), against the 72 bytes the reference step keeps (mode
+probabilities, combined mean, recognised set, health).  On the truth of
+``bench_vs_reference.py`` (``paper_sim1_tuned``, one run) this script times, interleaved
+(repeat r of every variant before repeat r+1 of any), process CPU time, median:
+
+* ``reference``: ``../shared/perf/reference_step.py`` in a ``lax.scan``;
+* ``imm_filter``: the public call;
+* ``steps, 56 B out``: imm_filter's scan of :func:`uimm_jax.engine.imm.imm_step` on the
+  same arguments, keeping only the log mode probabilities and the combined mean;
+* ``steps, 204 B out (placeholders)``: the same, plus placeholder outputs with the shapes
+  and dtypes of imm_filter's other outputs, each one broadcast value (no arithmetic), and
+  ``mode_probs`` as ``exp(log_mode_probs)`` after the scan: imm_filter's bytes without
+  the arithmetic of its extra outputs;
+
+and, for each, the minor page faults per step (``getrusage``: the kernel mapping fresh
+output pages, counted in process time).  The first minus the second row is what the
+output arithmetic costs, the second minus the third what the output bytes cost.
+
+    python benchmarks/bench_imm_outputs.py                 # 1e6 steps, 7 repeats; ~2 min
+    python benchmarks/bench_imm_outputs.py --steps 200000 --repeat 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import time
+from pathlib import Path
+
+import jax  # noqa: E402  (after uimm_jax, which sets XLA_FLAGS)
+import numpy as np
+
+import uimm_jax  # applies the XLA CPU flags before JAX starts
+from bench_vs_reference import REPO, _bank, _load_reference, _reference_scan, _truth
+
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp  # noqa: E402
+
+from uimm_jax.engine.imm import imm_step  # noqa: E402
+from uimm_jax.engine.scan import as_batch_of_one, drop_batch_of_one  # noqa: E402
+from uimm_jax.studies import run as runner  # noqa: E402
+from uimm_jax.studies.imm_filter import _prepare  # noqa: E402
+
+
+def _steps_scan(placeholders: bool):
+    """imm_filter's scan keeping ``log_mode_probs`` and ``mean`` (+ placeholder outputs)."""
+
+    def run(dyn, cache, params, state0, us, ys, gate):
+        state0, us, ys = as_batch_of_one((state0, us, ys))
+        M, n = state0.log_mode_probs.shape[0], state0.mean.shape[0]
+
+        def body(state, uy):
+            new, info = imm_step(dyn, state, cache, params, uy[0], uy[1], gate=gate)
+            out = (info.log_mode_probs, info.mean)
+            if placeholders:  # model_loglik, cov, loglik_increment, health: one value each
+                v = info.loglik_increment
+                out += (
+                    jnp.broadcast_to(v, (M, 1)),
+                    jnp.broadcast_to(v, (n, n, 1)),
+                    v + 1.0,
+                    (v > 0).astype(jnp.int32),
+                )
+            return new, out
+
+        _, out = jax.lax.scan(body, state0, (us, ys))
+        out = drop_batch_of_one(out)
+        return (jnp.exp(out[0]),) + out if placeholders else out
+
+    return jax.jit(run, static_argnums=(0, 6))
+
+
+def _timed(fn, args):
+    r0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    t = time.process_time()
+    jax.block_until_ready(fn(*args))
+    dt = time.process_time() - t
+    return dt, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - r0
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--steps", type=int, default=1_000_000)
+    ap.add_argument("--repeat", type=int, default=7)
+    ap.add_argument("--reference", type=Path, default=REPO.parent / "shared" / "perf")
+    args = ap.parse_args(argv)
+    ref = _load_reference(args.reference)
+    sc = uimm_jax.load_scenario(REPO / "scenarios" / "paper_sim1_tuned.toml")
+    u, y, s = _truth(runner.setup_scenario(sc), args.steps, 1)
+    bank, kw = _bank(s)
+    uf, yf = u[:, None], y[:, :, 0]
+    prep = _prepare(
+        bank,
+        kw["transition"],
+        kw["initial_mode_probs"],
+        kw["initial_mean"],
+        kw["initial_cov"],
+        uf,
+        yf,
+        kw["gate"],
+    )
+    variants = {
+        "reference": (_reference_scan(ref), (ref.init(1), jnp.asarray(u), jnp.asarray(y))),
+        "imm_filter": (lambda: uimm_jax.imm_filter(bank, inputs=uf, measurements=yf, **kw), ()),
+        "steps, 56 B out": (_steps_scan(False), prep),
+        "steps, 204 B out (placeholders)": (_steps_scan(True), prep),
+    }
+    for fn, a in variants.values():  # compile
+        _timed(fn, a)
+    times = {k: [] for k in variants}
+    faults = {k: [] for k in variants}
+    for _ in range(args.repeat):
+        for k, (fn, a) in variants.items():
+            dt, nf = _timed(fn, a)
+            times[k].append(dt)
+            faults[k].append(nf)
+    N = args.steps
+    base = np.median(times["reference"])
+    load = Path("/proc/loadavg").read_text()[:14]
+    print(f"\n{N} steps, {args.repeat} repeats, load average {load}")
+    print("| variant | us per step | ratio to the reference | page faults per step (bytes) |")
+    print("|---|---:|---:|---:|")
+    for k in variants:
+        med = np.median(times[k])
+        pf = 4096 * np.median(faults[k]) / N
+        print(f"| {k} | {1e6 * med / N:.3f} | {med / base:.2f} | {pf:.0f} |")
+
+
+if __name__ == "__main__":
+    main()
