@@ -187,7 +187,7 @@ def combine(mean: jax.Array, cov: jax.Array, log_mu: jax.Array):
     axis per entry, and mirrored, so it is symmetric by construction.  The per-model
     covariances are symmetric entry for entry (:func:`uimm_jax.engine.kalman.kf_update`),
     so this equals the full block sum (measured identical on the actuator bank), and
-    ``imm_filter`` measured 3-8% faster with it (M = 4, n = 3; the same speed at n = 8 and
+    ``imm_filter`` measured 2-8% faster with it (M = 4, n = 3; the same speed at n = 8 and
     16; ``benchmarks/README.md``).
     """
     mu = jnp.exp(log_mu)
