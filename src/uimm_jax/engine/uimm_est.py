@@ -71,6 +71,8 @@ class EstSettings(NamedTuple):
         declare_min: a fault is declared only if its estimate is at least this.
         retract_below: a declared fault whose estimate stays below this is retracted.
         relin: re-centre the expansion when an estimate moves this far from it.
+        restart_below: an undeclared hypothesis of lower probability restarts its
+            magnitude from the prior (see ``_reset_unused``).
     """
 
     walk: float = 3e-4
@@ -80,6 +82,7 @@ class EstSettings(NamedTuple):
     declare_min: float = 0.15
     retract_below: float = 0.1
     relin: float = 0.02
+    restart_below: float = 1e-3
 
 
 class EstState(NamedTuple):
@@ -209,15 +212,31 @@ class UIMMEstDiagnoser(Diagnoser):
     def _reset_unused(self, st: IMMState, use: jax.Array, declared: jax.Array) -> IMMState:
         """Magnitudes a model does not use: to the bank's belief about them, uncorrelated.
 
-        For an undeclared fault that is the prior of a new fault, for a declared one
-        model 0's current estimate (so that mixing with the retraction hypothesis "D - f_j"
-        leaves the estimate of ``a_j`` alone).
+        For a declared fault that is model 0's current estimate (so that mixing with the
+        retraction hypothesis "D - f_j" leaves the estimate of ``a_j`` alone).  For an
+        undeclared fault it is its hypothesis' own estimate while that hypothesis has
+        probability ``>= settings.restart_below``, and the prior of a new fault otherwise;
+        a hypothesis below that probability restarts from the prior itself.  Mixing
+        (eqs. 15-17) then never blends a hypothesis' estimate with the prior while it
+        competes: a blend whose weight grows as the hypothesis loses probability widens
+        the loser's estimate and lowers its likelihood further, which made one of two
+        hypotheses that explain the data almost equally well (valve wear and leakage)
+        win by that feedback alone.
         """
         n, F, s = self.dyn.n, self.num_faults, self.settings
+        nd = use.ndim - 2
+        var_all = jnp.moveaxis(jnp.diagonal(st.cov[n:, n:], axis1=0, axis2=1), -1, 0)  # (F, M, *runs)
+        own = np.concatenate([np.zeros((F, 1), bool), np.eye(F, dtype=bool)], axis=1)
+        own = own.reshape((F, F + 1) + (1,) * nd)
+        own_mean = jnp.sum(jnp.where(own, st.mean[n:], 0.0), axis=1)  # (F, *runs)
+        own_var = jnp.sum(jnp.where(own, var_all, 0.0), axis=1)
+        live = st.log_mode_probs[1:] >= np.log(s.restart_below)  # (F, *runs)
+        restart = ~declared & ~live
+        use = use & ~(own & restart[:, None])
+        tm = jnp.where(declared, st.mean[n:, 0], jnp.where(live, own_mean, s.prior_mean))
+        tv = jnp.where(declared, var_all[:, 0], jnp.where(live, own_var, s.prior_sd**2))
+        tm, tv = tm[:, None], tv[:, None]  # (F, 1, *runs)
         free = jnp.concatenate([jnp.ones((n,) + use.shape[1:], bool), use], axis=0)
-        var0 = jnp.moveaxis(jnp.diagonal(st.cov[n:, n:, 0], axis1=0, axis2=1), -1, 0)
-        tm = jnp.where(declared, st.mean[n:, 0], s.prior_mean)[:, None]  # (F, 1, *runs)
-        tv = jnp.where(declared, var0, s.prior_sd**2)[:, None]
         mean = jnp.concatenate([st.mean[:n], jnp.where(use, st.mean[n:], tm)], 0)
         keep = free[:, None] & free[None]
         eye = np.eye(n + F, dtype=bool)[n:].reshape((F, n + F) + (1,) * (use.ndim - 1))
