@@ -14,12 +14,16 @@ magnitude of every fault of its set (a random walk of variance ``walk`` per step
 after a declaration every model carries the *estimated* size, and keeps refining it.
 
 **Magnitudes a model does not use** are reset, before each step, with no correlation, to
-the prior ``N(prior_mean, prior_sd^2)`` for an undeclared fault and to model 0's estimate
-for a declared one: mixing (eqs. 15-17) then hands a hypothesis that was improbable the
-prior for its new fault, and the retraction hypothesis leaves a declared estimate alone.
-An undeclared hypothesis' own magnitude is kept ``>= declare_min`` (and its standard
-deviation ``>= floor_sd``), so that it means "a fault worth declaring" and does not
-settle on nominal in fault-free data.
+the bank's belief about them: model 0's estimate for a declared fault, and for an
+undeclared one its hypothesis' own estimate, or the prior ``N(prior_mean, prior_sd^2)``
+once that hypothesis has fallen below ``restart_below`` (it then restarts from the prior
+itself).  Mixing (eqs. 15-17) thus never blends a competing hypothesis' estimate with
+the prior, and the retraction hypothesis leaves a declared estimate alone.
+An undeclared hypothesis' own magnitude is kept ``>= floor_mean`` (and its standard
+deviation ``>= floor_sd``), so that it means "a fault" and does not settle on nominal in
+fault-free data; ``floor_mean`` is below ``declare_min`` so that the bound never decides
+a declaration (an incipient fault smaller than the bound leaves both of two look-alike
+hypotheses at the bound, where neither can be declared).
 
 **Decisions** (eq. 29 and persistence, :func:`uimm_jax.engine.decision.decide`):
 
@@ -68,18 +72,23 @@ class EstSettings(NamedTuple):
         prior_mean: prior magnitude of a new fault (1: the library's value).
         prior_sd: its standard deviation.
         floor_sd: smallest standard deviation of an undeclared hypothesis' magnitude.
+        floor_mean: smallest mean of an undeclared hypothesis' own magnitude.
         declare_min: a fault is declared only if its estimate is at least this.
         retract_below: a declared fault whose estimate stays below this is retracted.
         relin: re-centre the expansion when an estimate moves this far from it.
+        restart_below: an undeclared hypothesis of lower probability restarts its
+            magnitude from the prior (see ``_reset_unused``).
     """
 
-    walk: float = 3e-4
+    walk: float = 1e-3
     prior_mean: float = 1.0
     prior_sd: float = 1.0
     floor_sd: float = 0.0
+    floor_mean: float = 0.05
     declare_min: float = 0.15
     retract_below: float = 0.1
     relin: float = 0.02
+    restart_below: float = 1e-3
 
 
 class EstState(NamedTuple):
@@ -209,15 +218,33 @@ class UIMMEstDiagnoser(Diagnoser):
     def _reset_unused(self, st: IMMState, use: jax.Array, declared: jax.Array) -> IMMState:
         """Magnitudes a model does not use: to the bank's belief about them, uncorrelated.
 
-        For an undeclared fault that is the prior of a new fault, for a declared one
-        model 0's current estimate (so that mixing with the retraction hypothesis "D - f_j"
-        leaves the estimate of ``a_j`` alone).
+        For a declared fault that is model 0's current estimate (so that mixing with the
+        retraction hypothesis "D - f_j" leaves the estimate of ``a_j`` alone).  For an
+        undeclared fault it is its hypothesis' own estimate while that hypothesis has
+        probability ``>= settings.restart_below``, and the prior of a new fault otherwise;
+        a hypothesis below that probability restarts from the prior itself.  Mixing
+        (eqs. 15-17) then never blends a hypothesis' estimate with the prior while it
+        competes: a blend whose weight grows as the hypothesis loses probability widens
+        the loser's estimate and lowers its likelihood further, which made one of two
+        hypotheses that explain the data almost equally well (valve wear and leakage)
+        win by that feedback alone.
         """
         n, F, s = self.dyn.n, self.num_faults, self.settings
+        nd = use.ndim - 2
+        # (F, M, *runs): every model's variance of every magnitude
+        var_all = jnp.moveaxis(jnp.diagonal(st.cov[n:, n:], axis1=0, axis2=1), -1, 0)
+        own = np.concatenate([np.zeros((F, 1), bool), np.eye(F, dtype=bool)], axis=1)
+        own = own.reshape((F, F + 1) + (1,) * nd)
+        own_mean = jnp.sum(jnp.where(own, st.mean[n:], 0.0), axis=1)  # (F, *runs)
+        own_var = jnp.sum(jnp.where(own, var_all, 0.0), axis=1)
+        live = st.log_mode_probs[1:] >= np.log(s.restart_below)  # (F, *runs)
+        live = live & (own_mean > s.floor_mean)  # a hypothesis held at its floor restarts
+        restart = ~declared & ~live
+        use = use & ~(own & restart[:, None])
+        tm = jnp.where(declared, st.mean[n:, 0], jnp.where(live, own_mean, s.prior_mean))
+        tv = jnp.where(declared, var_all[:, 0], jnp.where(live, own_var, s.prior_sd**2))
+        tm, tv = tm[:, None], tv[:, None]  # (F, 1, *runs)
         free = jnp.concatenate([jnp.ones((n,) + use.shape[1:], bool), use], axis=0)
-        var0 = jnp.moveaxis(jnp.diagonal(st.cov[n:, n:, 0], axis1=0, axis2=1), -1, 0)
-        tm = jnp.where(declared, st.mean[n:, 0], s.prior_mean)[:, None]  # (F, 1, *runs)
-        tv = jnp.where(declared, var0, s.prior_sd**2)[:, None]
         mean = jnp.concatenate([st.mean[:n], jnp.where(use, st.mean[n:], tm)], 0)
         keep = free[:, None] & free[None]
         eye = np.eye(n + F, dtype=bool)[n:].reshape((F, n + F) + (1,) * (use.ndim - 1))
@@ -227,10 +254,11 @@ class UIMMEstDiagnoser(Diagnoser):
         return IMMState(mean, cov, st.log_mode_probs)
 
     def _floor(self, st: IMMState, declared: jax.Array) -> IMMState:
-        """An undeclared hypothesis' own magnitude: mean ``>= declare_min``, sd ``>= floor_sd``.
+        """An undeclared hypothesis' own magnitude: mean ``>= floor_mean``, sd ``>= floor_sd``.
 
-        The hypothesis is "fault j of a size worth declaring": without the bound it would
-        settle on nominal in fault-free data and be slow to follow a fault that appears.
+        The hypothesis is "fault j is present": without the bound it would settle on
+        nominal in fault-free data (a copy of model 0 that keeps a share of the
+        probability) and be slow to follow a fault that appears.
         Raising a variance adds a PSD matrix (the covariance stays PSD).
         """
         n, F, s = self.dyn.n, self.num_faults, self.settings
@@ -238,7 +266,7 @@ class UIMMEstDiagnoser(Diagnoser):
             [np.zeros((F, 1), bool), np.eye(F, dtype=bool)], axis=1
         ).reshape((F, F + 1) + (1,) * (declared.ndim - 1))  # (F, M, *runs)
         mean = st.mean.at[n:].set(
-            jnp.where(hyp, jnp.maximum(st.mean[n:], s.declare_min), st.mean[n:])
+            jnp.where(hyp, jnp.maximum(st.mean[n:], s.floor_mean), st.mean[n:])
         )
         var = jnp.moveaxis(jnp.diagonal(st.cov[n:, n:], axis1=0, axis2=1), -1, 0)
         add = jnp.where(hyp, jnp.maximum(s.floor_sd**2 - var, 0.0), 0.0)
