@@ -10,7 +10,8 @@ custom call appears, so XLA CPU can hoist a whole ``lax.scan`` into one kernel.
 
 Batch axes align from the left (models, then runs: :func:`align`): a ``(r, c)`` operand
 broadcasts over any batch, an ``(r, c, M)`` bank over any runs.  A constant NumPy
-identity is recognised at trace time (``C = I`` costs nothing).
+identity is recognised at trace time (``C = I`` costs nothing), and so is a constant
+0/1 matrix with one 1 a row (:func:`selection`, ``[I 0]``: a product with it is slicing).
 
 The Cholesky factorisation floors its pivots and reports where it had to, so nothing
 here divides by zero or takes the square root of a negative number.
@@ -36,6 +37,7 @@ __all__ = [
     "mmt",
     "mirror_lower",
     "mv",
+    "selection",
     "sym",
 ]
 
@@ -67,6 +69,27 @@ def is_identity(a: Any) -> bool:
     )
 
 
+def selection(a: Any) -> tuple[int, ...] | None:
+    """Column of each row's one when ``a`` is a constant (NumPy) 0/1 matrix with one 1 a row.
+
+    Such a matrix (``[I 0]``: the measurement Jacobian of an augmented state) only picks
+    rows or columns: a product with it is static slicing, and exact.  ``None`` otherwise.
+    """
+    if not isinstance(a, np.ndarray) or a.ndim != 2 or a.shape[0] == 0:
+        return None
+    if not (np.all((a == 0) | (a == 1)) and np.all(np.sum(a, axis=1) == 1)):
+        return None
+    return tuple(int(i) for i in np.argmax(a, axis=1))
+
+
+def _take(a: Any, idx: tuple[int, ...], axis: int) -> Any:
+    """``a`` at the static indices ``idx`` along ``axis`` (a slice when they are a range)."""
+    a = jnp.asarray(a)
+    if idx == tuple(range(idx[0], idx[0] + len(idx))):
+        return jax.lax.slice_in_dim(a, idx[0], idx[0] + len(idx), axis=axis)
+    return jnp.stack([jnp.take(a, i, axis=axis) for i in idx], axis=axis)
+
+
 def _pair(a: Any, b: Any, la: int, lb: int) -> tuple[Any, Any]:
     a, b = jnp.asarray(a), jnp.asarray(b)
     nb = max(a.ndim - la, b.ndim - lb)
@@ -74,29 +97,47 @@ def _pair(a: Any, b: Any, la: int, lb: int) -> tuple[Any, Any]:
 
 
 def mm(a: Any, b: Any) -> Any:
-    """``a @ b`` for ``a (r, k, *batch)``, ``b (k, c, *batch)``; an identity is skipped."""
+    """``a @ b`` for ``a (r, k, *batch)``, ``b (k, c, *batch)``.
+
+    An identity is skipped; a constant :func:`selection` ``a`` picks rows of ``b``.
+    """
     if is_identity(a):
         return b
     if is_identity(b):
         return a
+    rows = selection(a)
+    if rows is not None:
+        return _take(b, rows, 0)
     a, b = _pair(a, b, 2, 2)
     return jnp.sum(a[:, :, None] * b[None], axis=1)
 
 
 def mmt(a: Any, b: Any) -> Any:
-    """``a @ b'`` for ``a (r, k, *batch)``, ``b (c, k, *batch)``; an identity is skipped."""
+    """``a @ b'`` for ``a (r, k, *batch)``, ``b (c, k, *batch)``.
+
+    An identity is skipped; a constant :func:`selection` picks columns of the other factor.
+    """
     if is_identity(b):
         return a
     if is_identity(a):
         return jnp.swapaxes(jnp.asarray(b), 0, 1)
+    cols = selection(b)
+    if cols is not None:
+        return _take(a, cols, 1)
+    rows = selection(a)
+    if rows is not None:
+        return jnp.swapaxes(_take(b, rows, 1), 0, 1)
     a, b = _pair(a, b, 2, 2)
     return jnp.sum(a[:, None] * b[None], axis=2)
 
 
 def mv(a: Any, x: Any) -> Any:
-    """``a @ x`` for ``a (r, k, *batch)``, ``x (k, *batch)``; an identity is skipped."""
+    """``a @ x`` for ``a (r, k, *batch)``, ``x (k, *batch)``; an identity (selection) is skipped."""
     if is_identity(a):
         return x
+    rows = selection(a)
+    if rows is not None:
+        return _take(x, rows, 0)
     a, x = _pair(a, x, 2, 1)
     if a.shape[1] == 0:
         return jnp.zeros(a.shape[:1] + jnp.broadcast_shapes(a.shape[2:], x.shape[1:]), a.dtype)

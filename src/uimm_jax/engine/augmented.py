@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from uimm_jax.engine import _block as bk
 from uimm_jax.engine.bank import FaultTable, thetas_for_magnitudes
 
 __all__ = ["AugCache", "AugmentedDynamics"]
@@ -105,21 +106,51 @@ class AugmentedDynamics:
         return value, jx, jnp.stack(cols, axis=1)
 
     def predict(self, cache: AugCache, xa: jax.Array, u: jax.Array):
-        """``[x_pred; a]`` and the augmented Jacobian ``[[Fx, Fa], [0, I]]``."""
-        n, F = self.n, self.F
-        x = xa[:n]
-        xp, Fx, Fa = self._with_a(cache, xa, lambda c: self.base.predict(c, x, u))
-        batch = xa.shape[1:]
-        Fx = _full(Fx, (n, n) + batch, xa.dtype)
-        eye = jnp.broadcast_to(np.eye(F).reshape((F, F) + (1,) * len(batch)), (F, F) + batch)
-        top = jnp.concatenate([Fx, Fa], axis=1)
-        bottom = jnp.concatenate([jnp.zeros((F, n) + batch, xa.dtype), eye.astype(xa.dtype)], 1)
-        return jnp.concatenate([xp, xa[n:]], axis=0), jnp.concatenate([top, bottom], axis=0)
+        """``[x_pred; a]`` and the top block rows ``G = [Fx, Fa]`` ``(n, n + F, *b)``.
 
-    def observe(self, cache: AugCache, xa: jax.Array):
-        """``y_pred`` and ``[Hx, Ha]``."""
+        The augmented Jacobian is ``[[Fx, Fa], [0, I]]``; its bottom rows are implied
+        (:meth:`predict_cov` uses the structure).
+        """
         n = self.n
         x = xa[:n]
+        xp, Fx, Fa = self._with_a(cache, xa, lambda c: self.base.predict(c, x, u))
+        Fx = _full(Fx, (n, n) + xa.shape[1:], xa.dtype)
+        return jnp.concatenate([xp, xa[n:]], axis=0), jnp.concatenate([Fx, Fa], axis=1)
+
+    def predict_cov(self, G: jax.Array, P: jax.Array, Q: jax.Array) -> jax.Array:
+        """``F P F' + Q`` for ``F = [[G], [0, I]]`` (the magnitudes' random walk).
+
+        With ``GP = G P``: the top-left block is ``GP G'``, the top-right ``GP[:, n:]``,
+        the bottom-right ``P[n:, n:]``: ``n (n + F) (2 n + F)`` products against
+        ``2 (n + F)^3`` for the full form, to which it is equal entry for entry (the full
+        form only adds exact zeros), mirrored like
+        :func:`~uimm_jax.engine.kalman.kf_predict_cov`.
+        """
+        n = self.n
+        GP = bk.mm(G, P)  # (n, n + F, *b)
+        top_left = bk.mirror_lower(bk.mmt(GP, G))
+        top_right = GP[:, n:]
+        bottom = jnp.concatenate(
+            [jnp.swapaxes(top_right, 0, 1), bk.mirror_lower(P[n:, n:])], axis=1
+        )
+        return jnp.concatenate([jnp.concatenate([top_left, top_right], 1), bottom], 0) + Q
+
+    def observe(self, cache: AugCache, xa: jax.Array):
+        """``y_pred`` and ``[Hx, Ha]``.
+
+        When the base measurement does not read the cache (``observe_uses_cache`` false:
+        a constant ``C`` and ``d``), ``Ha = 0`` and a constant ``Hx`` gives the constant
+        ``[Hx, 0]``, which the update's products reduce to slicing (``C = I``).
+        """
+        n = self.n
+        x = xa[:n]
+        if not getattr(self.base, "observe_uses_cache", True):
+            yp, Hx = self.base.observe(cache.base, x)
+            m = yp.shape[0]
+            if isinstance(Hx, np.ndarray):
+                return yp, np.concatenate([Hx, np.zeros((m, self.F))], axis=1)
+            Hx = _full(Hx, (m, n) + xa.shape[1:], xa.dtype)
+            return yp, jnp.concatenate([Hx, jnp.zeros((m, self.F) + Hx.shape[2:], Hx.dtype)], 1)
         yp, Hx, Ha = self._with_a(cache, xa, lambda c: self.base.observe(c, x))
         m = yp.shape[0]
         Hx = _full(Hx, (m, n) + xa.shape[1:], xa.dtype)
