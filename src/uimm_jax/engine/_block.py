@@ -218,7 +218,9 @@ def inv_cholesky(s: Any, floor: float) -> tuple[Any, Any, Any]:
     return jnp.stack([jnp.stack(row) for row in Li]), logdet, repaired
 
 
-def expm(a: Any, *, balance: Any = None, order: int = 12, squarings: int = 0) -> Any:
+def expm(
+    a: Any, *, balance: Any = None, order: int = 12, squarings: int = 0, zero_rows: int = 0
+) -> Any:
     """Matrix exponential of a bank ``a (n, n, *batch)``: balanced, scaled Taylor series.
 
     ``exp(a) = D exp(D^-1 a D) D^-1`` with a constant diagonal ``D = diag(balance)``
@@ -226,22 +228,37 @@ def expm(a: Any, *, balance: Any = None, order: int = 12, squarings: int = 0) ->
     ``T`` the Taylor polynomial of degree ``order`` in Horner form.  Purely block
     arithmetic, so it may sit inside the hoisted time loop (under ``lax.cond``).  With
     ``|b / 2^s| <= 0.5`` the truncation error is below ``0.5^13 / 13! ~ 2e-14`` relative.
+
+    ``zero_rows = p``: the last ``p`` rows of ``a`` are zero (the augmented matrix of a
+    zero-order hold), so those of ``exp(a)`` are ``[0, I]``; only the top ``n - p`` rows
+    are computed and returned, ``(n - p, n, *batch)``.  Every factor of the products
+    then has the bottom rows ``[0, I]``, which only add exact zeros and one term: the
+    same numbers for ``(n - p) / n`` of the products' work per row, ``(n - p)`` as many rows.
     """
     a = jnp.asarray(a)
-    n = a.shape[0]
-    shape = (n, n) + (1,) * (a.ndim - 2)
+    n = a.shape[1]
+    r = n - zero_rows  # rows computed
+    a = a[:r]
+    shape = (r, n) + (1,) * (a.ndim - 2)
     if balance is not None:
         d = np.asarray(balance, np.float64)
-        a = a * jnp.asarray((d[None, :] / d[:, None]).reshape(shape), a.dtype)
+        a = a * jnp.asarray((d[None, :] / d[:r, None]).reshape(shape), a.dtype)
     b = a / float(2**squarings) if squarings else a
-    eye = jnp.asarray(np.eye(n).reshape(shape), a.dtype)
+
+    def times(x, t):  # x @ [t; 0 I] for the top rows x (r, n) and t (r, n)
+        if not zero_rows:
+            return mm(x, t)
+        left = jnp.zeros(x.shape[:1] + (r,) + x.shape[2:], x.dtype)
+        return mm(x[:, :r], t) + jnp.concatenate([left, x[:, r:]], axis=1)
+
+    eye = jnp.asarray(np.eye(r, n).reshape(shape), a.dtype)
     t = eye
     for k in range(order, 0, -1):
-        t = eye + mm(b, t) * (1.0 / k)
+        t = eye + times(b, t) * (1.0 / k)
     for _ in range(squarings):
-        t = mm(t, t)
+        t = times(t, t)
     if balance is not None:
-        t = t * jnp.asarray((d[:, None] / d[None, :]).reshape(shape), a.dtype)
+        t = t * jnp.asarray((d[:r, None] / d[None, :]).reshape(shape), a.dtype)
     return t
 
 

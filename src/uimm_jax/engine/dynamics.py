@@ -118,8 +118,8 @@ def zoh(A: jax.Array, B: jax.Array, dt: float, *, balance=None, squarings: int =
     n, p = A.shape[0], B.shape[1]
     top = jnp.concatenate([A, B], axis=1) * dt
     aug = jnp.concatenate([top, jnp.zeros((p, n + p) + top.shape[2:], top.dtype)], axis=0)
-    E = bk.expm(aug, balance=balance, squarings=squarings)
-    return E[:n, :n], E[:n, n:]
+    E = bk.expm(aug, balance=balance, squarings=squarings, zero_rows=p)  # the top n rows
+    return E[:, :n], E[:, n:]
 
 
 # Largest number of squarings of the matrix exponential (|A dt| up to ~2^MAX/4): each is
