@@ -81,12 +81,15 @@ class AugmentedDynamics:
         def cache_of(a):
             return self.base.prepare(thetas_for_magnitudes(self.table, sets, a, dtype))
 
-        base = cache_of(a0)
-        jac = []
-        for k in range(self.F):
-            tangent = jnp.zeros_like(a0).at[k].set(1.0)
-            jac.append(jax.jvp(cache_of, (a0,), (tangent,))[1])
-        return AugCache(base, tuple(jac), a0, sets)
+        tangents = jnp.broadcast_to(
+            jnp.asarray(np.eye(self.F), dtype).reshape((self.F,) * 2 + (1,) * (a0.ndim - 1)),
+            (self.F,) + a0.shape,
+        )
+        base, jac = jax.vmap(lambda t: jax.jvp(cache_of, (a0,), (t,)), out_axes=(None, 0))(
+            tangents
+        )
+        jac = tuple(jax.tree.map(lambda leaf, k=k: leaf[k], jac) for k in range(self.F))
+        return AugCache(base, jac, a0, sets)
 
     def _expanded(self, cache: AugCache, a: jax.Array):
         da = jnp.where(cache.use, a - cache.a0, 0.0)
