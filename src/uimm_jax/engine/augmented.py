@@ -17,6 +17,10 @@ Jacobian with respect to ``a_k`` is the ``jax.jvp`` of the base ``predict`` alon
 measurement.  The diagnoser re-centres ``a0`` on the estimates (a new cache) whenever an
 estimate moves more than a tolerance from its reference (:mod:`uimm_jax.engine.uimm_est`),
 so the expansion stays local: a moving-bank EKF.
+
+The algebra uses the structure of ``[x; a]``: the Jacobian's bottom rows ``[0, I]`` are
+implied (:meth:`AugmentedDynamics.predict_cov`), and a measurement that does not read the
+cache gives the constant ``H = [C, 0]``, applied by slicing (``_block.selection``).
 """
 
 from __future__ import annotations
@@ -75,7 +79,12 @@ class AugmentedDynamics:
         self.F = table.num_faults
 
     def prepare(self, sets: jax.Array, a0: jax.Array) -> AugCache:
-        """The cache of fault sets ``(F, *batch)`` at reference magnitudes ``(F, *batch)``."""
+        """The cache of fault sets ``(F, *batch)`` at reference magnitudes ``(F, *batch)``.
+
+        The ``F`` derivatives go through one vmapped ``jvp`` (the primal once, the tangents
+        as a batch): a rebuild measured 2.5-3.7 against 3.4-4.6 us per run for ``F``
+        separate ``jvp`` calls (docs/faults.md, "Cost").
+        """
         dtype = a0.dtype
 
         def cache_of(a):
