@@ -432,6 +432,26 @@ def matrix_plant(n, p, m):
     )
 
 
+@pytest.mark.parametrize("rows", [(0, 1, 2), (3, 0, 3)])
+def test_products_with_a_constant_selection_matrix_are_the_dense_products(rows):
+    # A 0/1 NumPy matrix with one 1 a row is applied by slicing: the same numbers as the
+    # dense product, and refused as a selection when a row has no or two ones.
+    from uimm_jax.engine import _block as bk
+
+    rng = np.random.default_rng(0)
+    S = np.eye(5)[list(rows)]
+    assert bk.selection(S) == rows
+    assert bk.selection(S + np.eye(5)[[1, 2, 4]]) is None
+    assert bk.selection(np.zeros((2, 5))) is None
+    b = jnp.asarray(rng.standard_normal((5, 4, 2)))
+    c = jnp.asarray(rng.standard_normal((4, 5, 2)))
+    v = jnp.asarray(rng.standard_normal((5, 2)))
+    np.testing.assert_array_equal(bk.mm(S, b), np.einsum("ik,kjb->ijb", S, b))
+    np.testing.assert_array_equal(bk.mmt(c, S), np.einsum("ikb,jk->ijb", c, S))
+    np.testing.assert_array_equal(bk.mmt(S, c), np.einsum("ik,jkb->ijb", S, c))
+    np.testing.assert_array_equal(bk.mv(S, v), np.einsum("ik,kb->ib", S, v))
+
+
 def test_batch_kernel_on_linear_models_equals_the_kalman_filter():
     """A bank of 3 different linear models with an identity transition: 3 independent KFs.
 

@@ -132,7 +132,7 @@ def test_augmented_jacobian_matches_autodiff_of_the_exact_dynamics():
     rng = np.random.default_rng(0)
     x = jnp.asarray(rng.normal(size=(n, 4)) * 1e-3)
     u = jnp.full((1, 4), 0.01)
-    _, Fa = aug.predict(cache, jnp.concatenate([x, a0], axis=0), u)  # at the reference
+    _, Fa = aug.predict(cache, jnp.concatenate([x, a0], axis=0), u)  # [Fx, Fa] at the reference
     xa = jnp.concatenate([x, a0 + 0.01], axis=0)
     xp, _ = aug.predict(cache, xa, u)  # 0.01 away: the first-order expansion
 
@@ -146,12 +146,45 @@ def test_augmented_jacobian_matches_autodiff_of_the_exact_dynamics():
         J = jax.jacfwd(exact)(jnp.concatenate([x, a0], axis=0)[:, m], m)
         use = np.concatenate([np.ones(n, bool), np.asarray(sets[:, m])])
         np.testing.assert_allclose(
-            np.asarray(Fa[:, :, m])[:, use], np.asarray(J)[:, use], rtol=1e-9, atol=1e-18
+            np.asarray(Fa[:, :, m])[:, use], np.asarray(J)[:n, use], rtol=1e-9, atol=1e-18
         )
         # first-order expansion 0.01 from the reference: the mean is close to exact
         np.testing.assert_allclose(
             np.asarray(xp[:, m]), np.asarray(exact(xa[:, m], m)), rtol=1e-3, atol=1e-12
         )
+
+
+def test_augmented_structured_algebra_equals_the_full_products():
+    # predict_cov uses F = [[G], [0, I]] and observe a constant H = [C, 0]: the results must
+    # be those of the dense (n + F) x (n + F) algebra, entry for entry.
+    import jax.numpy as jnp
+
+    from uimm_jax.engine import _block as bk
+    from uimm_jax.engine.kalman import kf_predict_cov, kf_update
+
+    st = _est_setup()
+    aug, n, F = st.diagnoser.aug, 3, 3
+    N = n + F
+    rng = np.random.default_rng(1)
+    L = rng.standard_normal((N, N, 4))
+    P = np.einsum("ikb,jkb->ijb", L, L) + 0.1 * np.eye(N)[..., None]
+    G = rng.standard_normal((n, N, 4))
+    Q = np.diag(rng.uniform(0.1, 1.0, N))
+    full = np.concatenate([G, np.broadcast_to(np.eye(N)[n:, :, None], (F, N, 4))], 0)
+    got = np.asarray(aug.predict_cov(jnp.asarray(G), jnp.asarray(P), jnp.asarray(Q)[..., None]))
+    want = np.asarray(kf_predict_cov(jnp.asarray(full), jnp.asarray(P), jnp.asarray(Q)[..., None]))
+    np.testing.assert_allclose(got, want, rtol=1e-13, atol=0)
+    np.testing.assert_array_equal(got, np.swapaxes(got, 0, 1))
+    cache = aug.prepare(st.diagnoser.model_sets(jnp.zeros(F, bool)), jnp.ones((F, 4)))
+    yp, H = aug.observe(cache, jnp.asarray(rng.standard_normal((N, 4))))
+    assert isinstance(H, np.ndarray) and bk.selection(H) == (0, 1, 2)  # [I 0], no tracing
+    x = jnp.asarray(rng.standard_normal((N, 4)))
+    y = jnp.asarray(rng.standard_normal((3, 1)))
+    R = jnp.asarray(np.diag([0.5, 1.0, 2.0]))[..., None]
+    sliced = kf_update(x, jnp.asarray(P), y, yp, H, R, 1e-150)
+    dense = kf_update(x, jnp.asarray(P), y, yp, jnp.asarray(H), R, 1e-150)  # traced: products
+    for a, b in zip(sliced[:5], dense[:5], strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-13, atol=1e-300)
 
 
 def test_uimm_est_declares_and_sizes_a_fault_off_the_library_value():

@@ -156,18 +156,19 @@ def test_resume_refuses_another_scenario_and_names_the_field(finished):
         mc.run_sweep(other, checkpoint=out, resume=True)
 
 
+def one_run(**fields):
+    """The arrays of one finished run for ``save_batch`` (3 faults, 3 states)."""
+    empty = sweep_store.Finished.empty(1, 1, 3, 3)._asdict()
+    empty.pop("done")
+    return {k: v[0] for k, v in empty.items()} | fields
+
+
 def test_unfinished_sweep_is_not_overwritten(tmp_path):
     sc = small_scenario()
     shape = (10, 2, 3, 3)
     manifest = sweep_store.manifest_for(sc, sweep_spec(sc), np.float64, 32, 1)
     store, _ = sweep_store.open_store(tmp_path, manifest, resume=False, shape=shape)
-    store.save_batch(
-        np.array([0]), np.array([1]),
-        decl_step=np.full((1, 3), -1, np.int32), correct=np.array([5]),
-        sq_err=np.zeros((1, 3)), health=np.zeros(1, np.int32),
-        fdi_faulty=np.zeros(1, np.int64), fdi_flagged_faulty=np.zeros(1, np.int64),
-        fdi_flagged_free=np.zeros(1, np.int64), fdi_true_prob=np.zeros(1),
-    )  # fmt: skip
+    store.save_batch(np.array([0]), np.array([1]), **one_run(correct=np.array([5])))
     (tmp_path / ".batch-00001.npz.123.tmp").write_bytes(b"half a file")
     with pytest.raises(ValueError, match=r"unfinished sweep \(1 runs finished\); continue it"):
         mc.run_sweep(sc, checkpoint=tmp_path)
@@ -181,3 +182,60 @@ def test_resume_needs_a_checkpoint(tmp_path):
         mc.run_sweep(small_scenario(), checkpoint=tmp_path, resume=True)
     with pytest.raises(ValueError, match="checkpoint folder"):
         mc.run_sweep(small_scenario(), resume=True)
+
+
+class _Stop(Exception):
+    pass
+
+
+EST_SWEEP = dict(SWEEP, runs=10, methods=["uimm-est"], magnitudes=[1.0], noise_scales=[1.0])
+EST_SWEEP["batch"] = 16
+EST_SWEEP["cases"] = SWEEP["cases"][:1]  # 2 cells x 10 runs: batches of 16 and 4 runs
+
+
+def test_uimm_est_sweep_interrupted_then_resumed_equals_uninterrupted(tmp_path):
+    # The size-estimating method's arrays (sizes, retractions, declaration counts) are in
+    # the checkpoint: a sweep stopped in its second batch and resumed gives, bit for bit,
+    # the per-run arrays and estimates of a sweep that was never stopped.
+    sc = small_scenario(EST_SWEEP)
+
+    def stop_in_batch_2(label, steps, total):
+        if "batch 2/2" in label:
+            raise _Stop
+
+    with pytest.raises(_Stop):
+        mc.run_sweep(sc, checkpoint=tmp_path, progress=stop_in_batch_2)
+    assert len(list(tmp_path.glob("batch-*.npz"))) == 1
+    seen = []
+    resumed = mc.run_sweep(
+        sc, checkpoint=tmp_path, resume=True, progress=lambda *a: seen.append(a)
+    )
+    N = sc.num_steps
+    assert seen and seen[0][1] >= 16 * N and all("batch 1/1" in a[0] for a in seen)  # 4 runs
+    whole = mc.run_sweep(sc)
+    for name in ARRAYS:
+        np.testing.assert_array_equal(getattr(resumed, name), getattr(whole, name), err_msg=name)
+    assert sorted(resumed.estimates) == sorted(whole.estimates)
+    for name, arr in whole.estimates.items():
+        np.testing.assert_array_equal(resumed.estimates[name], arr, err_msg=name)
+    assert np.all(np.isfinite(whole.estimates["magnitude"]))  # every run was sized
+    assert resumed.summaries == whole.summaries
+
+
+def test_resume_reads_batches_without_sizes_only_for_sweeps_without_uimm_est(tmp_path):
+    # A batch file written before the sizes were checkpointed (no est_* arrays).
+    sc = small_scenario()
+    for methods, ok in ((["uimm"], True), (["uimm-est"], False)):
+        folder = tmp_path / methods[0]
+        spec = sweep_spec(sc, methods=methods)
+        manifest = sweep_store.manifest_for(sc, spec, np.float64, 32, 1)
+        sweep_store.open_store(folder, manifest, resume=False, shape=(10, 2, 3, 3))
+        old = {k: v[None] for k, v in one_run(correct=np.array(7)).items() if "est_" not in k}
+        np.savez(folder / "batch-00000.npz", cell=np.array([0]), run=np.array([1]), **old)
+        if ok:
+            _, fin = sweep_store.open_store(folder, manifest, resume=True, shape=(10, 2, 3, 3))
+            assert fin.done[0, 1] and fin.correct[0, 1] == 7
+            assert np.isnan(fin.est_magnitude[0, 1]).all()
+        else:
+            with pytest.raises(ValueError, match="is not a batch of this sweep"):
+                sweep_store.open_store(folder, manifest, resume=True, shape=(10, 2, 3, 3))

@@ -10,7 +10,8 @@ custom call appears, so XLA CPU can hoist a whole ``lax.scan`` into one kernel.
 
 Batch axes align from the left (models, then runs: :func:`align`): a ``(r, c)`` operand
 broadcasts over any batch, an ``(r, c, M)`` bank over any runs.  A constant NumPy
-identity is recognised at trace time (``C = I`` costs nothing).
+identity is recognised at trace time (``C = I`` costs nothing), and so is a constant
+0/1 matrix with one 1 a row (:func:`selection`, ``[I 0]``: a product with it is slicing).
 
 The Cholesky factorisation floors its pivots and reports where it had to, so nothing
 here divides by zero or takes the square root of a negative number.
@@ -36,6 +37,7 @@ __all__ = [
     "mmt",
     "mirror_lower",
     "mv",
+    "selection",
     "sym",
 ]
 
@@ -67,6 +69,27 @@ def is_identity(a: Any) -> bool:
     )
 
 
+def selection(a: Any) -> tuple[int, ...] | None:
+    """Column of each row's one when ``a`` is a constant (NumPy) 0/1 matrix with one 1 a row.
+
+    Such a matrix (``[I 0]``: the measurement Jacobian of an augmented state) only picks
+    rows or columns: a product with it is static slicing, and exact.  ``None`` otherwise.
+    """
+    if not isinstance(a, np.ndarray) or a.ndim != 2 or a.shape[0] == 0:
+        return None
+    if not (np.all((a == 0) | (a == 1)) and np.all(np.sum(a, axis=1) == 1)):
+        return None
+    return tuple(int(i) for i in np.argmax(a, axis=1))
+
+
+def _take(a: Any, idx: tuple[int, ...], axis: int) -> Any:
+    """``a`` at the static indices ``idx`` along ``axis`` (a slice when they are a range)."""
+    a = jnp.asarray(a)
+    if idx == tuple(range(idx[0], idx[0] + len(idx))):
+        return jax.lax.slice_in_dim(a, idx[0], idx[0] + len(idx), axis=axis)
+    return jnp.stack([jnp.take(a, i, axis=axis) for i in idx], axis=axis)
+
+
 def _pair(a: Any, b: Any, la: int, lb: int) -> tuple[Any, Any]:
     a, b = jnp.asarray(a), jnp.asarray(b)
     nb = max(a.ndim - la, b.ndim - lb)
@@ -74,29 +97,47 @@ def _pair(a: Any, b: Any, la: int, lb: int) -> tuple[Any, Any]:
 
 
 def mm(a: Any, b: Any) -> Any:
-    """``a @ b`` for ``a (r, k, *batch)``, ``b (k, c, *batch)``; an identity is skipped."""
+    """``a @ b`` for ``a (r, k, *batch)``, ``b (k, c, *batch)``.
+
+    An identity is skipped; a constant :func:`selection` ``a`` picks rows of ``b``.
+    """
     if is_identity(a):
         return b
     if is_identity(b):
         return a
+    rows = selection(a)
+    if rows is not None:
+        return _take(b, rows, 0)
     a, b = _pair(a, b, 2, 2)
     return jnp.sum(a[:, :, None] * b[None], axis=1)
 
 
 def mmt(a: Any, b: Any) -> Any:
-    """``a @ b'`` for ``a (r, k, *batch)``, ``b (c, k, *batch)``; an identity is skipped."""
+    """``a @ b'`` for ``a (r, k, *batch)``, ``b (c, k, *batch)``.
+
+    An identity is skipped; a constant :func:`selection` picks columns of the other factor.
+    """
     if is_identity(b):
         return a
     if is_identity(a):
         return jnp.swapaxes(jnp.asarray(b), 0, 1)
+    cols = selection(b)
+    if cols is not None:
+        return _take(a, cols, 1)
+    rows = selection(a)
+    if rows is not None:
+        return jnp.swapaxes(_take(b, rows, 1), 0, 1)
     a, b = _pair(a, b, 2, 2)
     return jnp.sum(a[:, None] * b[None], axis=2)
 
 
 def mv(a: Any, x: Any) -> Any:
-    """``a @ x`` for ``a (r, k, *batch)``, ``x (k, *batch)``; an identity is skipped."""
+    """``a @ x`` for ``a (r, k, *batch)``, ``x (k, *batch)``; an identity (selection) is skipped."""
     if is_identity(a):
         return x
+    rows = selection(a)
+    if rows is not None:
+        return _take(x, rows, 0)
     a, x = _pair(a, x, 2, 1)
     if a.shape[1] == 0:
         return jnp.zeros(a.shape[:1] + jnp.broadcast_shapes(a.shape[2:], x.shape[1:]), a.dtype)
@@ -177,7 +218,9 @@ def inv_cholesky(s: Any, floor: float) -> tuple[Any, Any, Any]:
     return jnp.stack([jnp.stack(row) for row in Li]), logdet, repaired
 
 
-def expm(a: Any, *, balance: Any = None, order: int = 12, squarings: int = 0) -> Any:
+def expm(
+    a: Any, *, balance: Any = None, order: int = 12, squarings: int = 0, zero_rows: int = 0
+) -> Any:
     """Matrix exponential of a bank ``a (n, n, *batch)``: balanced, scaled Taylor series.
 
     ``exp(a) = D exp(D^-1 a D) D^-1`` with a constant diagonal ``D = diag(balance)``
@@ -185,22 +228,37 @@ def expm(a: Any, *, balance: Any = None, order: int = 12, squarings: int = 0) ->
     ``T`` the Taylor polynomial of degree ``order`` in Horner form.  Purely block
     arithmetic, so it may sit inside the hoisted time loop (under ``lax.cond``).  With
     ``|b / 2^s| <= 0.5`` the truncation error is below ``0.5^13 / 13! ~ 2e-14`` relative.
+
+    ``zero_rows = p``: the last ``p`` rows of ``a`` are zero (the augmented matrix of a
+    zero-order hold), so those of ``exp(a)`` are ``[0, I]``; only the top ``n - p`` rows
+    are computed and returned, ``(n - p, n, *batch)``.  Every factor of the products
+    then has the bottom rows ``[0, I]``, which only add exact zeros and one term: the
+    same numbers for ``(n - p) / n`` of the products' work per row, ``(n - p)`` as many rows.
     """
     a = jnp.asarray(a)
-    n = a.shape[0]
-    shape = (n, n) + (1,) * (a.ndim - 2)
+    n = a.shape[1]
+    r = n - zero_rows  # rows computed
+    a = a[:r]
+    shape = (r, n) + (1,) * (a.ndim - 2)
     if balance is not None:
         d = np.asarray(balance, np.float64)
-        a = a * jnp.asarray((d[None, :] / d[:, None]).reshape(shape), a.dtype)
+        a = a * jnp.asarray((d[None, :] / d[:r, None]).reshape(shape), a.dtype)
     b = a / float(2**squarings) if squarings else a
-    eye = jnp.asarray(np.eye(n).reshape(shape), a.dtype)
+
+    def times(x, t):  # x @ [t; 0 I] for the top rows x (r, n) and t (r, n)
+        if not zero_rows:
+            return mm(x, t)
+        left = jnp.zeros(x.shape[:1] + (r,) + x.shape[2:], x.dtype)
+        return mm(x[:, :r], t) + jnp.concatenate([left, x[:, r:]], axis=1)
+
+    eye = jnp.asarray(np.eye(r, n).reshape(shape), a.dtype)
     t = eye
     for k in range(order, 0, -1):
-        t = eye + mm(b, t) * (1.0 / k)
+        t = eye + times(b, t) * (1.0 / k)
     for _ in range(squarings):
-        t = mm(t, t)
+        t = times(t, t)
     if balance is not None:
-        t = t * jnp.asarray((d[:, None] / d[None, :]).reshape(shape), a.dtype)
+        t = t * jnp.asarray((d[:r, None] / d[None, :]).reshape(shape), a.dtype)
     return t
 
 

@@ -214,14 +214,22 @@ def thetas_for_magnitudes(
     Returns:
         ``(P, *batch)``: each parameter of a fault in the set at :func:`param_at_magnitude`,
         the others nominal.
+
+    Only the parameters a fault changes are computed (the mask is static; a parameter
+    belongs to one fault at most): one :func:`param_at_magnitude` per changed parameter.
     """
     dtype = dtype or jnp.asarray(0.0).dtype
-    tail = (1,) * (sets.ndim - 1)
-    mask = np.asarray(table.mask).reshape(table.mask.shape + tail)  # (F, P, 1...)
-    values = jnp.asarray(table.values, dtype).reshape(table.values.shape + tail)
-    nominal = jnp.asarray(table.nominal, dtype).reshape((1,) + table.nominal.shape + tail)
-    log_scale = table.log_mask.reshape((1, -1) + tail)
-    moved = param_at_magnitude(nominal, values, magnitudes[:, None], log_scale)  # (F, P, *b)
-    touch = sets[:, None] & mask
-    val = jnp.sum(jnp.where(touch, moved, 0.0), axis=0)
-    return jnp.where(jnp.any(touch, axis=0), val, nominal[0])
+    batch = jnp.broadcast_shapes(sets.shape[1:], magnitudes.shape[1:])
+    log_scale = table.log_mask
+    rows = []
+    for q, v0 in enumerate(table.nominal):
+        nominal = jnp.full(batch, v0, dtype)
+        owner = np.flatnonzero(table.mask[:, q])
+        if owner.size == 0:
+            rows.append(nominal)
+            continue
+        j = int(owner[0])
+        value = jnp.asarray(table.values[j, q], dtype)
+        moved = param_at_magnitude(nominal, value, magnitudes[j], bool(log_scale[q]))
+        rows.append(jnp.where(sets[j], moved, nominal))
+    return jnp.stack(rows)

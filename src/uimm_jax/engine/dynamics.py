@@ -47,6 +47,11 @@ class Dynamics(Protocol):
 
     Attributes:
         linear: True when ``predict``/``observe`` are exact linear maps (KF, not EKF).
+
+    Optional: ``predict_cov(F, P, Q)``, the predicted covariance for the ``F`` that
+    ``predict`` returns (when ``F`` has a structure: the augmented dynamics,
+    :mod:`uimm_jax.engine.augmented`), and ``observe_uses_cache`` (false when ``observe``
+    does not read the cache).
     """
 
     linear: bool
@@ -113,8 +118,8 @@ def zoh(A: jax.Array, B: jax.Array, dt: float, *, balance=None, squarings: int =
     n, p = A.shape[0], B.shape[1]
     top = jnp.concatenate([A, B], axis=1) * dt
     aug = jnp.concatenate([top, jnp.zeros((p, n + p) + top.shape[2:], top.dtype)], axis=0)
-    E = bk.expm(aug, balance=balance, squarings=squarings)
-    return E[:n, :n], E[:n, n:]
+    E = bk.expm(aug, balance=balance, squarings=squarings, zero_rows=p)  # the top n rows
+    return E[:, :n], E[:, n:]
 
 
 # Largest number of squarings of the matrix exponential (|A dt| up to ~2^MAX/4): each is
@@ -162,6 +167,11 @@ class _LinearBank(abc.ABC):
     def predict(self, cache: LinearCache, x: jax.Array, u: jax.Array):
         """``x_pred = Ad x + Bd u`` and ``F = Ad`` (exact); ``x`` is ``(n, *batch)``."""
         return bk.mv(cache.A, x) + bk.mv(cache.B, u), cache.A
+
+    @property
+    def observe_uses_cache(self) -> bool:
+        """False when ``C`` and ``d`` are constants: :meth:`observe` ignores the cache."""
+        return self.const_C is None or self.const_d is None
 
     def observe(self, cache: LinearCache, x: jax.Array):
         """``y_pred = C x + d`` and ``H = C`` (a NumPy constant when it is one)."""

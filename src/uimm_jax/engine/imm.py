@@ -235,7 +235,9 @@ def imm_step(
     nb = state.log_mode_probs.ndim  # batch axes (models, runs...)
     x0, P0, log_c = mix(state.mean, state.cov, state.log_mode_probs, params.log_transition)
     x_pred, F = dyn.predict(cache, x0, u[:, None])
-    P_pred = kf_predict_cov(F, P0, bk.align(params.Q, 2, nb))
+    # A dynamics object whose Jacobian has a structure may predict the covariance itself.
+    predict_cov = getattr(dyn, "predict_cov", kf_predict_cov)
+    P_pred = predict_cov(F, P0, bk.align(params.Q, 2, nb))
     y_pred, H = dyn.observe(cache, x_pred)
     floor = float(jnp.finfo(dtype).tiny) ** 0.5
     accept = None

@@ -68,6 +68,7 @@ import numpy as np
 
 from uimm_jax.engine import metrics
 from uimm_jax.engine.truth import RAMP_STAIRS, run_keys
+from uimm_jax.engine.uimm_est import UIMMEstDiagnoser
 from uimm_jax.errors import UIMMWarning
 from uimm_jax.scenario.sweep import FAULT_FREE, CaseSpec, SweepSpec, sweep_spec
 from uimm_jax.studies.run import setup_scenario
@@ -331,19 +332,6 @@ def run_sweep(
             last = lasts[case.name][:, e]
             end_arr[cell.index, :, j] = np.where(last > 0, onsets[case.name][:, e] + last, -1)
     K = _max_phases(spec)
-    est_arr = {
-        "retract_step": np.full((C, R, F), -1, np.int32),
-        "declarations": np.zeros((C, R, F), np.int32),
-        "false_count": np.zeros((C, R), np.int32),
-        "magnitude": np.full((C, R, F), np.nan),
-        "magnitude_sd": np.full((C, R, F), np.nan),
-    }
-    any_est = False
-    if resume and "uimm-est" in spec.methods:
-        raise ValueError(
-            "resume: a sweep with method 'uimm-est' cannot be resumed yet (its size and "
-            "retraction arrays are not in the checkpoint); run it again without --resume"
-        )
     # Batches: as few as ``batch`` allows, of equal sizes, a multiple of LANES per device.
     jobs_per_method = R * (C // len(spec.methods))
     nb = _ceil_div(jobs_per_method, spec.batch)
@@ -357,6 +345,7 @@ def run_sweep(
     else:
         fin = Finished.empty(C, R, F, n)
     decl_step, correct, sq_err, health = fin.decl_step, fin.correct, fin.sq_err, fin.health
+    est_arr = {k[4:]: v for k, v in fin._asdict().items() if k.startswith("est_")}
     chunk_len = spec.chunk or _even_chunk(N, max(1000, CHUNK_RUN_STEPS // B))
     chunk_len = min(chunk_len, N)
     runs_done = int(fin.done.sum())
@@ -419,12 +408,11 @@ def run_sweep(
             for name, value in got.items():
                 getattr(fin, name)[c, r] = value
             if est_got and est_got[0] is not None:
-                any_est = True
                 for name, arr in est_arr.items():
                     v = np.asarray(getattr(est_got[0], name))
                     arr[c, r] = (v.T if v.ndim == 2 else v)[:real]
             if store is not None:
-                store.save_batch(c, r, **got)
+                store.save_batch(c, r, **got, **{f"est_{k}": v[c, r] for k, v in est_arr.items()})
             runs_done += real
             ran += real
             if report is not None:
@@ -454,7 +442,7 @@ def run_sweep(
         noise_keys=noise_keys,
         true_magnitude=mag_arr,
         end_step=end_arr,
-        estimates=est_arr if any_est else None,
+        estimates=est_arr if UIMMEstDiagnoser.method in spec.methods else None,
         runtime_s=time.perf_counter() - t_start,
         devices=nd,
         processes=jax.process_count(),

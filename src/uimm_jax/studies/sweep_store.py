@@ -7,10 +7,12 @@ table) and the settings that decide the numbers
 (:func:`~uimm_jax.studies.sweep_outputs.spec_settings` and the float dtype).  After each
 batch it writes ``batch-NNNNN.npz``: the cell and run index of each of the batch's runs
 and their per-run arrays (declaration steps, samples with the right mode, summed squared
-errors, health flags).  Every file is written to a temporary name in the same folder,
-flushed to disk and renamed (``os.replace``, atomic on POSIX), so a kill at any moment
-leaves only whole files; leftover temporary files are removed when the folder is opened
-again.
+errors, health flags, FDI counts and, for every method, the size-estimating method's
+arrays: retraction steps, declaration counts, false declarations, magnitude estimates;
+their "none" values for the other methods' runs).  Every file is written to a temporary
+name in the same folder, flushed to disk and renamed (``os.replace``, atomic on POSIX),
+so a kill at any moment leaves only whole files; leftover temporary files are removed
+when the folder is opened again.
 
 The manifest also records the batch layout: the runs per batch and the number of devices
 (over all processes).  Resuming (``resume=True``) reads the manifest, refuses when the
@@ -39,6 +41,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from uimm_jax.engine.uimm_est import UIMMEstDiagnoser
 from uimm_jax.scenario.write import scenario_to_dict
 from uimm_jax.studies.distributed import is_main, share
 from uimm_jax.studies.sweep_outputs import spec_settings
@@ -57,6 +60,14 @@ _FIELDS = (
     "fdi_flagged_free",
     "fdi_true_prob",
 )
+_EST_FIELDS = (
+    "est_retract_step",
+    "est_declarations",
+    "est_false_count",
+    "est_magnitude",
+    "est_magnitude_sd",
+)
+"""The arrays of a size-estimating method (``uimm-est``), ``SweepResult.estimates``."""
 
 
 class Finished(NamedTuple):
@@ -71,6 +82,11 @@ class Finished(NamedTuple):
         fdi_faulty: ``(C, R)`` the run's :class:`~uimm_jax.engine.metrics.FDICounts`,
             one array per count (``fdi_flagged_faulty``, ``fdi_flagged_free``,
             ``fdi_true_prob`` likewise).
+        est_retract_step: ``(C, R, F)`` the size-estimating method's retraction steps
+            (-1); ``est_declarations`` ``(C, R, F)``, ``est_false_count`` ``(C, R)``,
+            ``est_magnitude`` and ``est_magnitude_sd`` ``(C, R, F)`` (NaN) likewise
+            (:class:`~uimm_jax.engine.metrics.EstMetrics`; their "none" values for the
+            other methods' runs).
     """
 
     done: np.ndarray
@@ -82,6 +98,11 @@ class Finished(NamedTuple):
     fdi_flagged_faulty: np.ndarray
     fdi_flagged_free: np.ndarray
     fdi_true_prob: np.ndarray
+    est_retract_step: np.ndarray
+    est_declarations: np.ndarray
+    est_false_count: np.ndarray
+    est_magnitude: np.ndarray
+    est_magnitude_sd: np.ndarray
 
     @classmethod
     def empty(cls, C: int, R: int, F: int, n: int) -> Finished:
@@ -96,6 +117,11 @@ class Finished(NamedTuple):
             fdi_flagged_faulty=np.zeros((C, R), np.int64),
             fdi_flagged_free=np.zeros((C, R), np.int64),
             fdi_true_prob=np.zeros((C, R)),
+            est_retract_step=np.full((C, R, F), -1, np.int32),
+            est_declarations=np.zeros((C, R, F), np.int32),
+            est_false_count=np.zeros((C, R), np.int32),
+            est_magnitude=np.full((C, R, F), np.nan),
+            est_magnitude_sd=np.full((C, R, F), np.nan),
         )
 
 
@@ -178,11 +204,14 @@ class SweepStore:
         Args:
             cells: ``(B,)`` cell index of each run of the batch (no padding).
             runs: ``(B,)`` run index of each.
-            **arrays: their ``decl_step (B, F)``, ``correct (B,)``, ``sq_err (B, n)`` and
-                ``health (B,)``.
+            **arrays: their ``decl_step (B, F)``, ``correct (B,)``, ``sq_err (B, n)``,
+                ``health (B,)``, FDI counts (``fdi_*``, ``(B,)``) and the size-estimating
+                method's ``est_*`` arrays (:class:`Finished`).
         """
-        if sorted(arrays) != sorted(_FIELDS):
-            raise ValueError(f"save_batch: expected the arrays {_FIELDS}, got {sorted(arrays)}")
+        if sorted(arrays) != sorted(_FIELDS + _EST_FIELDS):
+            raise ValueError(
+                f"save_batch: expected the arrays {_FIELDS + _EST_FIELDS}, got {sorted(arrays)}"
+            )
         path = self.folder / f"batch-{len(self.batches()):05d}.npz"
         _atomic_write(path, lambda fh: np.savez(fh, cell=cells, run=runs, **arrays))
         return path
@@ -190,18 +219,24 @@ class SweepStore:
     def load(self, shape: tuple[int, int, int, int]) -> Finished:
         """The finished runs of every batch file, as ``(C, R, ...)`` arrays.
 
+        A batch file written before the size arrays were stored (no ``est_*``) is read
+        when the sweep has no size-estimating method (its runs keep the "none" values),
+        and refused otherwise.
+
         Args:
             shape: ``(C, R, F, n)``: cells, runs, faults and states.
         """
         C, R, F, n = shape
         fin = Finished.empty(C, R, F, n)
+        sizes = UIMMEstDiagnoser.method in (self.manifest.get("settings") or {}).get("methods", ())
         for path in self.batches():
             try:
                 with np.load(path) as z:
                     c, r = z["cell"], z["run"]
-                    fin.done[c, r] = 1
-                    for name in _FIELDS:
+                    names = _FIELDS + (_EST_FIELDS if sizes or "est_magnitude" in z else ())
+                    for name in names:
                         getattr(fin, name)[c, r] = z[name]
+                    fin.done[c, r] = 1
             except (OSError, KeyError, ValueError, IndexError) as err:
                 raise ValueError(
                     f"--resume: {path} is not a batch of this sweep ({err}); delete it to "
