@@ -91,7 +91,8 @@ def kf_update(
     H,
     R,
     floor: float,
-    accept: Callable[[jax.Array], jax.Array] | None = None,
+    accept: Callable[..., jax.Array] | None = None,
+    accept_args: tuple = (),
 ) -> UpdateResult:
     """Measurement update of a bank (eqs. 21, 23-27).
 
@@ -103,39 +104,34 @@ def kf_update(
         H: ``(m, n, *batch)`` measurement Jacobian, or a constant NumPy ``(m, n)``.
         R: ``(m, m, ...)`` measurement noise covariance (broadcastable).
         floor: smallest admissible squared Cholesky pivot of ``S``.
-        accept: optional ``nis (*batch) -> bool`` (broadcasting to the batch): filters
-            where it is false keep ``(x, P)`` and get a zero log-likelihood (a gate).
-            Masking the gain costs one select on ``W``; selecting the results afterwards
-            cost 15-18% of an IMM step (measured).
+        accept: optional ``accept(nis (*batch), *accept_args) -> bool`` (broadcasting to
+            the batch): filters where it is false keep ``(x, P)`` and get a zero
+            log-likelihood (a gate).  Masking the gain costs one select on ``W``;
+            selecting the results afterwards cost 15-18% of an IMM step (measured).  It
+            must not close over traced arrays (the update's reverse mode is a
+            ``custom_vjp``): pass them in ``accept_args``.
+        accept_args: arrays passed to ``accept`` after ``nis`` (not differentiated).
 
     Returns:
         An :class:`UpdateResult`.
     """
-    if isinstance(H, np.ndarray):  # a constant (C = I is then free in the algebra)
+    const_H = isinstance(H, np.ndarray)  # a constant (C = I is then free in the algebra)
 
-        def core(x, P, y, y_pred, R):
-            return _update_forward(x, P, y, y_pred, H, R, floor, accept)
+    def update(x, P, y, y_pred, H_arg, R, accept_args):
+        H_ = H if const_H else H_arg
+        return _update_forward(x, P, y, y_pred, H_, R, floor, accept, accept_args)
 
-        def core_bwd(res, ct):
-            g = _update_backward(res, ct, H, res.R, shapes)
-            return g[0], g[1], g[2], g[3], g[5]
+    args = tuple(jnp.asarray(a) for a in (x, P, y, y_pred))
+    args += (None if const_H else jnp.asarray(H), jnp.asarray(R), tuple(accept_args))
+    shapes = tuple(None if a is None else jnp.shape(a) for a in args[:6])
 
-        args = (x, P, y, y_pred, R)
-        shapes = (x.shape, P.shape, jnp.shape(y), y_pred.shape, None, jnp.shape(R))
-    else:
+    def bwd(res, ct):
+        g = _update_backward(res, ct, H if const_H else res.H, res.R, shapes)
+        return g + (tuple(None for _ in accept_args),)
 
-        def core(x, P, y, y_pred, H, R):
-            return _update_forward(x, P, y, y_pred, H, R, floor, accept)
-
-        def core_bwd(res, ct):
-            return _update_backward(res, ct, res.H, res.R, shapes)
-
-        args = (x, P, y, y_pred, H, R)
-        shapes = (x.shape, P.shape, jnp.shape(y), y_pred.shape, jnp.shape(H), jnp.shape(R))
-    args = tuple(jnp.asarray(a) for a in args)
-    update = jax.custom_vjp(lambda *a: core(*a)[0])
-    update.defvjp(core, core_bwd)
-    return update(*args)
+    fn = jax.custom_vjp(lambda *a: update(*a)[0])
+    fn.defvjp(update, bwd)
+    return fn(*args)
 
 
 class _Residuals(NamedTuple):
@@ -151,7 +147,7 @@ class _Residuals(NamedTuple):
     R: jax.Array
 
 
-def _update_forward(x, P, y, y_pred, H, R, floor, accept):
+def _update_forward(x, P, y, y_pred, H, R, floor, accept, accept_args):
     """The update of :func:`kf_update` and the residuals of its reverse mode."""
     const_H = isinstance(H, np.ndarray)
     m = y_pred.shape[0]
@@ -174,7 +170,7 @@ def _update_forward(x, P, y, y_pred, H, R, floor, accept):
     W = bk.mmt(PHt, Linv)  # P H' L^-T, (n, m, *batch)
     keep = None
     if accept is not None:
-        keep = accept(nis)
+        keep = accept(nis, *accept_args)
         W = jnp.where(keep, W, 0.0)  # K = 0: x and P stay as predicted
         loglik = jnp.where(keep, loglik, 0.0)
     x_new = x + bk.mv(W, v)
