@@ -35,6 +35,7 @@ __all__ = [
     "is_identity",
     "mm",
     "mmt",
+    "mtm",
     "mirror_lower",
     "mv",
     "selection",
@@ -131,6 +132,16 @@ def mmt(a: Any, b: Any) -> Any:
     return jnp.sum(a[:, None] * b[None], axis=2)
 
 
+def mtm(a: Any, b: Any) -> Any:
+    """``a' @ b`` for ``a (k, r, *batch)``, ``b (k, c, *batch)``; an identity is skipped."""
+    if is_identity(a):
+        return b
+    if is_identity(b):
+        return jnp.swapaxes(jnp.asarray(a), 0, 1)
+    a, b = _pair(a, b, 2, 2)
+    return jnp.sum(a[:, :, None] * b[:, None], axis=0)
+
+
 def mv(a: Any, x: Any) -> Any:
     """``a @ x`` for ``a (r, k, *batch)``, ``x (k, *batch)``; an identity (selection) is skipped."""
     if is_identity(a):
@@ -154,14 +165,34 @@ def sym(a: Any) -> Any:
     return 0.5 * (a + jnp.swapaxes(a, 0, 1))
 
 
+@jax.custom_vjp
 def mirror_lower(a: Any) -> Any:
     """The symmetric matrix whose lower triangle is ``a``'s (static slices, no arithmetic).
 
     Cheaper than :func:`sym` in the time loop (measured 5-8% of a step at 64 runs: no
-    transposed copy, no add): used where ``a`` is symmetric up to rounding.
+    transposed copy, no add): used where ``a`` is symmetric up to rounding.  Its reverse
+    mode is written as two masked block operations (reverse mode through the slices
+    scatters each entry into a zero matrix: ~0.5 us of a 4 us gradient step, measured).
     """
     n = a.shape[0]
     return jnp.stack([jnp.stack([a[max(i, j), min(i, j)] for j in range(n)]) for i in range(n)])
+
+
+def _mirror_lower_fwd(a):
+    return mirror_lower(a), None
+
+
+def _mirror_lower_bwd(_, g):
+    # Entry (i, j) of the output is a[max(i, j), min(i, j)]: a strictly lower entry
+    # collects g[i, j] + g[j, i], a diagonal entry g[i, i], an upper entry nothing.
+    n = g.shape[0]
+    shape = (n, n) + (1,) * (g.ndim - 2)
+    lower = np.tril(np.ones((n, n), bool), -1).reshape(shape)
+    diag = np.eye(n, dtype=bool).reshape(shape)
+    return (jnp.where(lower, g + jnp.swapaxes(g, 0, 1), jnp.where(diag, g, 0.0)),)
+
+
+mirror_lower.defvjp(_mirror_lower_fwd, _mirror_lower_bwd)
 
 
 def inv_cholesky(s: Any, floor: float) -> tuple[Any, Any, Any]:

@@ -16,6 +16,7 @@ its probability stays ``-inf``.
 
 from __future__ import annotations
 
+import functools
 from typing import Any, NamedTuple
 
 import jax
@@ -201,6 +202,16 @@ def combine(mean: jax.Array, cov: jax.Array, log_mu: jax.Array):
     return xc, Pc
 
 
+def _gate_accept(gate: float, nis: jax.Array, active: jax.Array | None = None) -> jax.Array:
+    """The innovation gate's verdict per run (``True``: the sample is used).
+
+    The sample is rejected for every model of a run when even the best-fitting active
+    model sees it beyond the gate; NaN is left to the finite guard.
+    """
+    nis = nis if active is None else jnp.where(active, nis, jnp.inf)
+    return ~(jnp.min(nis, axis=0) > gate)
+
+
 def imm_step(
     dyn: Any,
     state: IMMState,
@@ -240,15 +251,12 @@ def imm_step(
     P_pred = predict_cov(F, P0, bk.align(params.Q, 2, nb))
     y_pred, H = dyn.observe(cache, x_pred)
     floor = float(jnp.finfo(dtype).tiny) ** 0.5
-    accept = None
+    accept, accept_args = None, ()
     if gate is not None:
-        # The innovation gate: reject the sample for every model of a run when even the
-        # best-fitting active model sees it beyond the gate.
-        def accept(nis):
-            nis = nis if active is None else jnp.where(active, nis, jnp.inf)
-            return ~(jnp.min(nis, axis=0) > gate)  # NaN is left to the finite guard
-
-    res = kf_update(x_pred, P_pred, y[:, None], y_pred, H, bk.align(params.R, 2, nb), floor, accept)
+        accept = functools.partial(_gate_accept, float(gate))
+        accept_args = () if active is None else (active,)
+    R = bk.align(params.R, 2, nb)
+    res = kf_update(x_pred, P_pred, y[:, None], y_pred, H, R, floor, accept, accept_args)
     x_new, P_new, ll = res.mean, res.cov, res.loglik
     repaired = res.repaired if active is None else res.repaired & active
     health = jnp.where(jnp.any(repaired, axis=0), HEALTH_COV_REPAIRED, 0)

@@ -359,9 +359,17 @@ def _initial_carry(problem: Problem, batch: TrainingBatch) -> _Carry:
 
 
 def _segment_length(N: int, config: TuneConfig) -> int:
+    """Checkpoint segment: ``config.segment``, else ``ceil(sqrt(N) / 4)``.
+
+    Memory is ``N / L`` carries plus one segment's residuals (``L`` steps, about four
+    times a carry each): ``O(sqrt(N))`` either way.  A quarter of ``sqrt(N)`` keeps the
+    residuals of a segment in cache: at 1e6 samples (paper simulation 1) the gradient
+    measured 3.23x the forward pass with segments of 1000 samples, 2.74x with 250 and
+    2.79x with 100.
+    """
     if config.segment is not None:
         return int(min(config.segment, N))
-    return max(1, int(math.ceil(math.sqrt(N))))
+    return max(1, int(math.ceil(math.sqrt(N) / 4)))
 
 
 def _run(problem: Problem, config: TuneConfig, c: Constrained, params, batch, carry):

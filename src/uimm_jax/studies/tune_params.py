@@ -67,7 +67,7 @@ class TuneConfig:
         temperature: decision-statistic temperature, logit units.
         hold_temperature: persistence-gate temperature, log-run-length units.
         weights: :class:`LossWeights`.
-        segment: checkpoint segment length in steps (``None``: ``ceil(sqrt(N))``).
+        segment: checkpoint segment length in steps (``None``: ``ceil(sqrt(N) / 4)``).
         checkpoint: checkpoint the segments (off: plain reverse mode, memory ``O(N)``).
     """
 
