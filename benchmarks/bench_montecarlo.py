@@ -14,7 +14,11 @@ Every configuration runs in its own subprocess (fresh XLA, its own peak memory V
   batch of 64 runs of the same truth, 1 device: the engine issue's measuring stick; the
   table gives every row's time per run-step against it (truth counted in the fused rows);
 * ``memory``: a fixed batch over 1e4 and 1e6 samples (same compiled chunk of 1e4 steps):
-  the peak must not grow with the number of samples.
+  the peak must not grow with the number of samples;
+* ``--anatomy``: instead of the table, the fused chunk and its parts at ``--ref-batch``
+  runs on one device, interleaved in one process, in CPU seconds per run-step: the truth
+  (its noise draw alone, then the whole truth scan), the diagnoser with the metrics, the
+  fused chunk, and the reference step on the same truth.
 
 Compilation is timed apart (first chunk minus a steady chunk).  Ratios are against the
 single-run baseline measured in the same invocation.  Defaults finish in < 10 minutes on a
@@ -22,6 +26,7 @@ quiet 2-core machine::
 
     python benchmarks/bench_montecarlo.py               # full table
     python benchmarks/bench_montecarlo.py --quick       # a smoke run (~2 min)
+    python benchmarks/bench_montecarlo.py --anatomy     # where a run-step's time goes
 """
 
 from __future__ import annotations
@@ -61,12 +66,7 @@ def worker(args) -> dict:
     N, L = args.steps, args.chunk
     rss0 = vm_mib("VmRSS")
     if args.worker == "reference":
-        import importlib.util
-
-        src = ROOT.parent / "shared" / "perf" / "reference_step.py"
-        spec = importlib.util.spec_from_file_location("reference_step", src)
-        ref = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(ref)
+        ref = _load_reference()
         from uimm_jax.engine.scan import truth_scan
 
         setup = run.setup_scenario(sc, "uimm")
@@ -149,6 +149,79 @@ def worker(args) -> dict:
     }
 
 
+def _load_reference():
+    import importlib.util
+
+    src = ROOT.parent / "shared" / "perf" / "reference_step.py"
+    spec = importlib.util.spec_from_file_location("reference_step", src)
+    ref = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ref)
+    return ref
+
+
+def anatomy(B: int, L: int, repeat: int) -> list[tuple[str, float]]:
+    """CPU us per run-step of the fused chunk's parts at B runs, one device, interleaved."""
+    from uimm_jax.xla_flags import apply_recommended_xla_flags
+
+    apply_recommended_xla_flags()
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import numpy as np
+
+    from uimm_jax.engine import scan
+    from uimm_jax.engine.truth import run_keys, standard_noise
+    from uimm_jax.studies import run, sweep
+
+    sc = _scenario(L)
+    setup = run.setup_scenario(sc, "uimm")
+    diag, params, dt, sig = setup.diagnoser, setup.params, float(sc.dt), setup.signal
+    onset = np.tile(np.array([round(0.3 * L), round(0.6 * L), -1]), (B, 1))
+    plan, keys, carry = sweep.batch_inputs(
+        setup, onset, np.ones(onset.shape), np.ones(B), run_keys(sc.seed, B)[0], 3, jnp.float64
+    )
+    ks = jnp.arange(L, dtype=jnp.int32)
+    size = carry.x.shape[0] + plan.Gr.shape[0]
+    truth = jax.jit(lambda pl, k, x, ks: scan.truth_scan(diag.dyn, dt, 1, pl, sig, k, x, ks))
+    _, (us, xs, ys, codes) = truth(plan, keys, carry.x, ks)
+    variants = {
+        "truth: noise draw only": (
+            jax.jit(
+                lambda k, ks: jax.vmap(lambda s: standard_noise(k, s, size, (B,), jnp.float64))(ks)
+            ),
+            (keys, ks),
+        ),
+        "truth (draw + scan)": (truth, (plan, keys, carry.x, ks)),
+        "diagnoser + metrics": (
+            jax.jit(lambda c, *a: scan.diagnose_scan(diag, 1, params, c, *a)),
+            (carry, ks, us, xs, ys, codes),
+        ),
+        "fused chunk (truth + diagnoser + metrics)": (
+            jax.jit(
+                lambda pl, k, c, ks: scan.simulate_diagnose(diag, dt, 1, params, pl, sig, k, c, ks)
+            ),
+            (plan, keys, carry, ks),
+        ),
+    }
+    if (ROOT.parent / "shared" / "perf" / "reference_step.py").exists():
+        ref = _load_reference()
+        step = ref.make_step()
+        variants["reference step (filter only)"] = (
+            jax.jit(lambda c, u, z: jax.lax.scan(step, c, (u, z))),
+            (ref.init(B), us, ys),
+        )
+    for f, a in variants.values():
+        jax.block_until_ready(f(*a))
+    times = {name: [] for name in variants}
+    for _ in range(repeat):
+        for name, (f, a) in variants.items():
+            t0 = time.process_time()
+            jax.block_until_ready(f(*a))
+            times[name].append(time.process_time() - t0)
+    return [(name, min(t) / (L * B) * 1e6) for name, t in times.items()]
+
+
 def _spawn(mode: str, batch: int, steps: int, chunk: int, devices: int, timeout: float) -> dict:
     env = dict(os.environ)
     flags = env.get("XLA_FLAGS", "")
@@ -202,10 +275,24 @@ def main(argv=None) -> int:
     p.add_argument("--ref-batch", type=int, default=64, help="runs of the reference row")
     p.add_argument("--mem-steps", default="10000,1000000", help="sample counts of the memory test")
     p.add_argument("--quick", action="store_true", help="a short smoke run")
+    p.add_argument(
+        "--anatomy",
+        action="store_true",
+        help="time the fused chunk's parts at --ref-batch runs instead (one device)",
+    )
+    p.add_argument("--repeat", type=int, default=7, help="repeats of --anatomy (default 7)")
     p.add_argument("--json", help="also write the rows to this JSON file")
     args = p.parse_args(argv)
     if args.worker:
         print(json.dumps(worker(args)))
+        return 0
+    if args.anatomy:
+        B = args.ref_batch
+        print(f"# bench_montecarlo --anatomy: B={B}, chunk {args.chunk}, CPU time, interleaved")
+        print("| part | CPU us per run-step |")
+        print("|---|---:|")
+        for name, us in anatomy(B, args.chunk, args.repeat):
+            print(f"| {name} | {us:.3f} |")
         return 0
     if args.quick:
         args.batches, args.two_device_batches = "1,16,128", "64,128"
@@ -265,9 +352,7 @@ def main(argv=None) -> int:
     print(head + "| compile (s) | peak RSS (MiB) |")
     print("|---|---|---|---|---|---|")
     for r in rows + refs:
-        vs_ref = (
-            f"{refs[0]['run_steps_per_s'] / r['run_steps_per_s']:.2f}x" if refs else "n/a"
-        )
+        vs_ref = f"{refs[0]['run_steps_per_s'] / r['run_steps_per_s']:.2f}x" if refs else "n/a"
         print(
             f"| {r['label']} | {r['run_steps_per_s'] / 1e6:.3f} M | "
             f"{r['run_steps_per_s'] / base['run_steps_per_s']:.2f}x | {vs_ref} | "
