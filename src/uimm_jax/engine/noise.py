@@ -7,15 +7,16 @@ index in the step's draw: normals ``2 i`` and ``2 i + 1`` of step ``k`` come fro
 does.  So a run's numbers never depend on the batch it is in, on the chunking of its
 steps or on the device that computes it.
 
-Chosen by measurement (benchmarks/README.md, "Monte Carlo throughput"; XLA CPU, 64 runs,
-the actuator's 6 normals per step, per run-step):
+Chosen by measurement (``benchmarks/bench_noise.py``, benchmarks/README.md, "Monte Carlo
+throughput"; XLA CPU, 64 runs, the actuator's 6 normals per step, per run-step):
 
-* bits: ``jax.random.normal``'s threefry (one ``fold_in`` and six threefry2x32 blocks)
-  0.19-0.21 µs; Philox's 384 bits (three blocks) 0.02 µs.  ``rbg``/``unsafe_rbg`` are
-  fast too, but their numbers depend on the shape of the draw (batch, device count);
-* transform: the inverse error function of ``jax.random.normal`` 0.09 µs for 6 normals,
-  Box-Muller with XLA's ``sin``/``cos`` 0.16 µs, Box-Muller with the polynomial
-  :func:`sincos_2pi` below 0.06 µs.
+* ``jax.random.normal(fold_in(key, k), (6,))`` 0.30 µs, of which the threefry bits (one
+  ``fold_in`` and six threefry2x32 blocks) 0.22 µs; Philox's 384 bits (three blocks)
+  0.03 µs.  ``rbg``/``unsafe_rbg`` cost 0.17/0.11 µs, but their numbers depend on the
+  shape of the draw (batch, device count);
+* Philox words to normals: the inverse error function of ``jax.random.normal`` 0.11 µs in
+  all, Box-Muller with XLA's ``sin``/``cos`` 0.18 µs, Box-Muller with the polynomial
+  :func:`sincos_2pi` 0.09 µs.
 
 Box-Muller is exact in distribution: with ``v``, ``t`` independent uniforms on ``(0, 1)``,
 ``r = sqrt(-2 ln v)``, ``(r cos 2 pi t, r sin 2 pi t)`` are two independent standard
