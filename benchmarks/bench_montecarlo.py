@@ -20,7 +20,10 @@ Every configuration runs in its own subprocess (fresh XLA, its own peak memory V
   (its noise draw alone, then the whole truth scan), the diagnoser with the metrics, the
   fused chunk, and the reference step on the same truth.
 
-Compilation is timed apart (first chunk minus a steady chunk).  Ratios are against the
+Compilation is timed apart (first chunk minus a steady chunk).  Each row also gives the
+process's CPU time per run-step, summed over its threads: on a shared machine the wall-time
+throughput of the two-device rows falls with the load, while two free cores would give at
+most ``2 / (CPU µs per run-step)`` M run-steps/s.  Ratios are against the
 single-run baseline measured in the same invocation.  Defaults finish in < 10 minutes on a
 quiet 2-core machine::
 
@@ -86,26 +89,26 @@ def worker(args) -> dict:
         c0 = ref.init(B)
 
         def once(n):
-            t0 = time.perf_counter()
+            t0, c0_ = time.perf_counter(), time.process_time()
             jax.block_until_ready(scan(c0, us[:n], ys[:n]))
-            return time.perf_counter() - t0
+            return time.perf_counter() - t0, time.process_time() - c0_
 
-        t_first = once(N)
+        t_first, _ = once(N)
         hwm_compile = vm_mib("VmHWM")
-        t_run = min(once(N) for _ in range(3))
+        t_run, cpu_run = min(once(N) for _ in range(3))
     elif args.worker == "single":
 
         def once(n):
             s = run.setup_scenario(_scenario(n) if n != N else sc, "uimm")
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             tr = run.simulate_scenario(s, chunk=L)
             _, out = run.filter_measurements(s, tr["y"], tr["u"], chunk=L)
             np.asarray(out["declared"])
-            return time.perf_counter() - t0
+            return time.perf_counter() - t0, time.process_time() - c0
 
-        t_first = once(L)  # compile + one chunk
+        t_first, _ = once(L)  # compile + one chunk
         hwm_compile = vm_mib("VmHWM")
-        t_run = once(N)
+        t_run, cpu_run = once(N)
         B = 1
     else:
         setup = run.setup_scenario(sc, "uimm")
@@ -124,13 +127,13 @@ def worker(args) -> dict:
                 setup, onset, np.ones(onset.shape), np.ones(B), noise_keys, 3, jnp.float64
             )
             jax.block_until_ready((plan, keys, carry))
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             m = sweep.run_batch(setup, plan, keys, carry, n, L, mesh=mesh)
-            return time.perf_counter() - t0, m
+            return time.perf_counter() - t0, time.process_time() - c0, m
 
-        t_first, _ = once(L)
+        t_first, _, _ = once(L)
         hwm_compile = vm_mib("VmHWM")
-        t_run, m = once(N)
+        t_run, cpu_run, m = once(N)
         if args.check:
             assert np.all(m.decl_step[:, 0] >= round(0.3 * N)), m.decl_step
     per_chunk = t_run * L / N
@@ -142,6 +145,7 @@ def worker(args) -> dict:
         "chunk": L,
         "run_steps_per_s": B * N / t_run,
         "run_s": t_run,
+        "cpu_us_per_run_step": cpu_run / (B * N) * 1e6,
         "compile_s": max(t_first - per_chunk, 0.0),
         "rss_start_mib": rss0,
         "hwm_after_compile_mib": hwm_compile,
@@ -349,14 +353,14 @@ def main(argv=None) -> int:
         )
     print()
     head = "| configuration | run-steps/s | vs single run | time per run-step vs reference "
-    print(head + "| compile (s) | peak RSS (MiB) |")
-    print("|---|---|---|---|---|---|")
+    print(head + "| CPU µs per run-step (all threads) | compile (s) | peak RSS (MiB) |")
+    print("|---|---|---|---|---|---|---|")
     for r in rows + refs:
         vs_ref = f"{refs[0]['run_steps_per_s'] / r['run_steps_per_s']:.2f}x" if refs else "n/a"
         print(
             f"| {r['label']} | {r['run_steps_per_s'] / 1e6:.3f} M | "
             f"{r['run_steps_per_s'] / base['run_steps_per_s']:.2f}x | {vs_ref} | "
-            f"{r['compile_s']:.1f} | {r['hwm_end_mib']:.0f} |"
+            f"{r['cpu_us_per_run_step']:.3f} | {r['compile_s']:.1f} | {r['hwm_end_mib']:.0f} |"
         )
     print()
     print("| memory test | samples | peak after compile (MiB) | peak at end (MiB) |")
