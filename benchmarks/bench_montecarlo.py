@@ -14,14 +14,22 @@ Every configuration runs in its own subprocess (fresh XLA, its own peak memory V
   batch of 64 runs of the same truth, 1 device: the engine issue's measuring stick; the
   table gives every row's time per run-step against it (truth counted in the fused rows);
 * ``memory``: a fixed batch over 1e4 and 1e6 samples (same compiled chunk of 1e4 steps):
-  the peak must not grow with the number of samples.
+  the peak must not grow with the number of samples;
+* ``--anatomy``: instead of the table, the fused chunk and its parts at ``--ref-batch``
+  runs on one device, interleaved in one process, in CPU seconds per run-step: the truth
+  (its noise draw alone, then the whole truth scan), the diagnoser with the metrics, the
+  fused chunk, and the reference step on the same truth.
 
-Compilation is timed apart (first chunk minus a steady chunk).  Ratios are against the
+Compilation is timed apart (first chunk minus a steady chunk).  Each row also gives the
+process's CPU time per run-step, summed over its threads: on a shared machine the wall-time
+throughput of the two-device rows falls with the load, while two free cores would give at
+most ``2 / (CPU µs per run-step)`` M run-steps/s.  Ratios are against the
 single-run baseline measured in the same invocation.  Defaults finish in < 10 minutes on a
 quiet 2-core machine::
 
     python benchmarks/bench_montecarlo.py               # full table
     python benchmarks/bench_montecarlo.py --quick       # a smoke run (~2 min)
+    python benchmarks/bench_montecarlo.py --anatomy     # where a run-step's time goes
 """
 
 from __future__ import annotations
@@ -61,12 +69,7 @@ def worker(args) -> dict:
     N, L = args.steps, args.chunk
     rss0 = vm_mib("VmRSS")
     if args.worker == "reference":
-        import importlib.util
-
-        src = ROOT.parent / "shared" / "perf" / "reference_step.py"
-        spec = importlib.util.spec_from_file_location("reference_step", src)
-        ref = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(ref)
+        ref = _load_reference()
         from uimm_jax.engine.scan import truth_scan
 
         setup = run.setup_scenario(sc, "uimm")
@@ -86,26 +89,26 @@ def worker(args) -> dict:
         c0 = ref.init(B)
 
         def once(n):
-            t0 = time.perf_counter()
+            t0, c0_ = time.perf_counter(), time.process_time()
             jax.block_until_ready(scan(c0, us[:n], ys[:n]))
-            return time.perf_counter() - t0
+            return time.perf_counter() - t0, time.process_time() - c0_
 
-        t_first = once(N)
+        t_first, _ = once(N)
         hwm_compile = vm_mib("VmHWM")
-        t_run = min(once(N) for _ in range(3))
+        t_run, cpu_run = min(once(N) for _ in range(3))
     elif args.worker == "single":
 
         def once(n):
             s = run.setup_scenario(_scenario(n) if n != N else sc, "uimm")
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             tr = run.simulate_scenario(s, chunk=L)
             _, out = run.filter_measurements(s, tr["y"], tr["u"], chunk=L)
             np.asarray(out["declared"])
-            return time.perf_counter() - t0
+            return time.perf_counter() - t0, time.process_time() - c0
 
-        t_first = once(L)  # compile + one chunk
+        t_first, _ = once(L)  # compile + one chunk
         hwm_compile = vm_mib("VmHWM")
-        t_run = once(N)
+        t_run, cpu_run = once(N)
         B = 1
     else:
         setup = run.setup_scenario(sc, "uimm")
@@ -124,13 +127,13 @@ def worker(args) -> dict:
                 setup, onset, np.ones(onset.shape), np.ones(B), noise_keys, 3, jnp.float64
             )
             jax.block_until_ready((plan, keys, carry))
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             m = sweep.run_batch(setup, plan, keys, carry, n, L, mesh=mesh)
-            return time.perf_counter() - t0, m
+            return time.perf_counter() - t0, time.process_time() - c0, m
 
-        t_first, _ = once(L)
+        t_first, _, _ = once(L)
         hwm_compile = vm_mib("VmHWM")
-        t_run, m = once(N)
+        t_run, cpu_run, m = once(N)
         if args.check:
             assert np.all(m.decl_step[:, 0] >= round(0.3 * N)), m.decl_step
     per_chunk = t_run * L / N
@@ -142,11 +145,85 @@ def worker(args) -> dict:
         "chunk": L,
         "run_steps_per_s": B * N / t_run,
         "run_s": t_run,
+        "cpu_us_per_run_step": cpu_run / (B * N) * 1e6,
         "compile_s": max(t_first - per_chunk, 0.0),
         "rss_start_mib": rss0,
         "hwm_after_compile_mib": hwm_compile,
         "hwm_end_mib": vm_mib("VmHWM"),
     }
+
+
+def _load_reference():
+    import importlib.util
+
+    src = ROOT.parent / "shared" / "perf" / "reference_step.py"
+    spec = importlib.util.spec_from_file_location("reference_step", src)
+    ref = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ref)
+    return ref
+
+
+def anatomy(B: int, L: int, repeat: int) -> list[tuple[str, float]]:
+    """CPU us per run-step of the fused chunk's parts at B runs, one device, interleaved."""
+    from uimm_jax.xla_flags import apply_recommended_xla_flags
+
+    apply_recommended_xla_flags()
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import numpy as np
+
+    from uimm_jax.engine import scan
+    from uimm_jax.engine.truth import run_keys, standard_noise
+    from uimm_jax.studies import run, sweep
+
+    sc = _scenario(L)
+    setup = run.setup_scenario(sc, "uimm")
+    diag, params, dt, sig = setup.diagnoser, setup.params, float(sc.dt), setup.signal
+    onset = np.tile(np.array([round(0.3 * L), round(0.6 * L), -1]), (B, 1))
+    plan, keys, carry = sweep.batch_inputs(
+        setup, onset, np.ones(onset.shape), np.ones(B), run_keys(sc.seed, B)[0], 3, jnp.float64
+    )
+    ks = jnp.arange(L, dtype=jnp.int32)
+    size = carry.x.shape[0] + plan.Gr.shape[0]
+    truth = jax.jit(lambda pl, k, x, ks: scan.truth_scan(diag.dyn, dt, 1, pl, sig, k, x, ks))
+    _, (us, xs, ys, codes) = truth(plan, keys, carry.x, ks)
+    variants = {
+        "truth: noise draw only": (
+            jax.jit(
+                lambda k, ks: jax.vmap(lambda s: standard_noise(k, s, size, (B,), jnp.float64))(ks)
+            ),
+            (keys, ks),
+        ),
+        "truth (draw + scan)": (truth, (plan, keys, carry.x, ks)),
+        "diagnoser + metrics": (
+            jax.jit(lambda c, *a: scan.diagnose_scan(diag, 1, params, c, *a)),
+            (carry, ks, us, xs, ys, codes),
+        ),
+        "fused chunk (truth + diagnoser + metrics)": (
+            jax.jit(
+                lambda pl, k, c, ks: scan.simulate_diagnose(diag, dt, 1, params, pl, sig, k, c, ks)
+            ),
+            (plan, keys, carry, ks),
+        ),
+    }
+    if (ROOT.parent / "shared" / "perf" / "reference_step.py").exists():
+        ref = _load_reference()
+        step = ref.make_step()
+        variants["reference step (filter only)"] = (
+            jax.jit(lambda c, u, z: jax.lax.scan(step, c, (u, z))),
+            (ref.init(B), us, ys),
+        )
+    for f, a in variants.values():
+        jax.block_until_ready(f(*a))
+    times = {name: [] for name in variants}
+    for _ in range(repeat):
+        for name, (f, a) in variants.items():
+            t0 = time.process_time()
+            jax.block_until_ready(f(*a))
+            times[name].append(time.process_time() - t0)
+    return [(name, min(t) / (L * B) * 1e6) for name, t in times.items()]
 
 
 def _spawn(mode: str, batch: int, steps: int, chunk: int, devices: int, timeout: float) -> dict:
@@ -202,10 +279,24 @@ def main(argv=None) -> int:
     p.add_argument("--ref-batch", type=int, default=64, help="runs of the reference row")
     p.add_argument("--mem-steps", default="10000,1000000", help="sample counts of the memory test")
     p.add_argument("--quick", action="store_true", help="a short smoke run")
+    p.add_argument(
+        "--anatomy",
+        action="store_true",
+        help="time the fused chunk's parts at --ref-batch runs instead (one device)",
+    )
+    p.add_argument("--repeat", type=int, default=7, help="repeats of --anatomy (default 7)")
     p.add_argument("--json", help="also write the rows to this JSON file")
     args = p.parse_args(argv)
     if args.worker:
         print(json.dumps(worker(args)))
+        return 0
+    if args.anatomy:
+        B = args.ref_batch
+        print(f"# bench_montecarlo --anatomy: B={B}, chunk {args.chunk}, CPU time, interleaved")
+        print("| part | CPU us per run-step |")
+        print("|---|---:|")
+        for name, us in anatomy(B, args.chunk, args.repeat):
+            print(f"| {name} | {us:.3f} |")
         return 0
     if args.quick:
         args.batches, args.two_device_batches = "1,16,128", "64,128"
@@ -262,16 +353,14 @@ def main(argv=None) -> int:
         )
     print()
     head = "| configuration | run-steps/s | vs single run | time per run-step vs reference "
-    print(head + "| compile (s) | peak RSS (MiB) |")
-    print("|---|---|---|---|---|---|")
+    print(head + "| CPU µs per run-step (all threads) | compile (s) | peak RSS (MiB) |")
+    print("|---|---|---|---|---|---|---|")
     for r in rows + refs:
-        vs_ref = (
-            f"{refs[0]['run_steps_per_s'] / r['run_steps_per_s']:.2f}x" if refs else "n/a"
-        )
+        vs_ref = f"{refs[0]['run_steps_per_s'] / r['run_steps_per_s']:.2f}x" if refs else "n/a"
         print(
             f"| {r['label']} | {r['run_steps_per_s'] / 1e6:.3f} M | "
             f"{r['run_steps_per_s'] / base['run_steps_per_s']:.2f}x | {vs_ref} | "
-            f"{r['compile_s']:.1f} | {r['hwm_end_mib']:.0f} |"
+            f"{r['cpu_us_per_run_step']:.3f} | {r['compile_s']:.1f} | {r['hwm_end_mib']:.0f} |"
         )
     print()
     print("| memory test | samples | peak after compile (MiB) | peak at end (MiB) |")

@@ -25,7 +25,7 @@ import math
 
 import numpy as np
 
-__all__ = ["IMM_ARGS", "kalman_filter", "make_linear_problem", "naive_imm"]
+__all__ = ["IMM_ARGS", "kalman_filter", "make_linear_problem", "naive_imm", "philox4x32"]
 
 #: Argument names shared by every IMM reference, in order.
 IMM_ARGS = (
@@ -311,3 +311,31 @@ def make_linear_problem(seed, M=3, n=2, m=1, p=1, N=200, *, return_truth=False):
 def _contraction(G, norm):
     """Rescale ``G`` to spectral norm ``norm`` (< 1: stable, and no transient growth)."""
     return norm * G / np.linalg.norm(G, 2)
+
+
+def philox4x32(key, counter, rounds=10):
+    """Philox4x32 (Salmon et al. 2011, Random123) in plain NumPy: 64-bit products.
+
+    Args:
+        key: ``(k0, k1)`` 32-bit words (arrays broadcast with the counter).
+        counter: ``(c0, c1, c2, c3)`` 32-bit words.
+        rounds: Philox rounds (10 is Random123's default).
+
+    Returns:
+        The four output words as uint32 arrays.
+    """
+    mask = np.uint64(0xFFFFFFFF)
+    k0, k1 = (np.asarray(a, np.uint64) for a in key)
+    x0, x1, x2, x3 = (np.asarray(a, np.uint64) for a in counter)
+    for r in range(rounds):
+        if r:  # Random123 bumps the key after every round but the last
+            k0, k1 = (k0 + np.uint64(0x9E3779B9)) & mask, (k1 + np.uint64(0xBB67AE85)) & mask
+        p0 = x0 * np.uint64(0xD2511F53)  # < 2^64: exact
+        p1 = x2 * np.uint64(0xCD9E8D57)
+        x0, x1, x2, x3 = (
+            (p1 >> np.uint64(32)) ^ x1 ^ k0,
+            p1 & mask,
+            (p0 >> np.uint64(32)) ^ x3 ^ k1,
+            p0 & mask,
+        )
+    return tuple(np.asarray(a, np.uint32) for a in (x0, x1, x2, x3))

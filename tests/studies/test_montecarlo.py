@@ -22,7 +22,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from _reference import philox4x32
 from uimm_jax.engine import metrics
+from uimm_jax.engine.noise import box_muller
 from uimm_jax.engine.truth import truth_step
 from uimm_jax.errors import ScenarioError
 from uimm_jax.scenario.parse import load_scenario, parse_scenario
@@ -80,7 +82,7 @@ def small_scenario(sweep=None):
 _SUBPROCESS = textwrap.dedent(
     """
     import sys
-    sys.path.insert(0, {tests!r})
+    sys.path[:0] = [{tests!r}, {root!r}]
     import jax
     jax.config.update("jax_enable_x64", True)
     import numpy as np
@@ -105,7 +107,8 @@ def sharded_proc(tmp_path_factory):
         env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
     ).strip()
     env["JAX_PLATFORMS"] = "cpu"
-    code = _SUBPROCESS.format(tests=str(Path(__file__).parent), out=str(out))
+    here = Path(__file__).parent
+    code = _SUBPROCESS.format(tests=str(here), root=str(here.parent), out=str(out))
     proc = subprocess.Popen(
         [sys.executable, "-c", code],
         env=env,
@@ -300,18 +303,29 @@ def test_confusion_definition():
 # --------------------------------------------------------------------------------------
 
 
+def _documented_normals(key, num_steps):
+    """The truth's normals of one run, ``(N, 6)``: step k's pair i is the Box-Muller
+    transform of the NumPy Philox words of counter ``(k, i, 0, 0)`` (engine/noise.py)."""
+    ks, i = np.meshgrid(np.arange(num_steps), np.arange(3), indexing="ij")
+    w = philox4x32((key[0], key[1]), (ks, i, 0, 0))  # each (N, 3)
+    a, b = ((hi.astype(np.uint64) << np.uint64(32)) | lo for hi, lo in (w[:2], w[2:]))
+    zc, zs = box_muller(jnp.asarray(a), jnp.asarray(b), jnp.float64)
+    return jnp.stack([zc, zs], axis=-1).reshape(num_steps, 6)
+
+
 @functools.partial(jax.jit, static_argnums=(0, 1, 2))
-def _simulate_one(dyn, dt, num_steps, plan, signal, key):
+def _simulate_one(dyn, dt, num_steps, plan, signal, zs):
     from uimm_jax.engine.truth import input_value
 
-    def body(x, k):
+    def body(x, kz):
+        k, z = kz
         t = k.astype(x.dtype) * dt
         u = jnp.full((1,), input_value(signal, t), x.dtype)
-        z = jax.random.normal(jax.random.fold_in(key, k), (6,), x.dtype)  # the documented draw
         xn, y, code = truth_step(dyn, plan, x, k, u, z)
         return xn, (u, xn, y, code)
 
-    _, out = jax.lax.scan(body, jnp.zeros(3), jnp.arange(num_steps, dtype=jnp.int32))
+    ks = jnp.arange(num_steps, dtype=jnp.int32)
+    _, out = jax.lax.scan(body, jnp.zeros(3), (ks, zs))
     return out
 
 
@@ -346,8 +360,9 @@ def _reference(sc, cell, r):
         Gq=setup.plan.Gq * cell.noise_scale, Gr=setup.plan.Gr * cell.noise_scale
     )
     key = jax.random.split(jax.random.split(jax.random.PRNGKey(SEED), RUNS)[r])[0]
+    zs = _documented_normals(np.asarray(key), one.num_steps)
     u, x, y, code = _simulate_one(
-        setup.diagnoser.dyn, float(one.dt), one.num_steps, plan, setup.signal, key
+        setup.diagnoser.dyn, float(one.dt), one.num_steps, plan, setup.signal, zs
     )
     _, out = run.filter_measurements(setup, np.asarray(y), np.asarray(u))
     summary = run.summarize(setup, np.asarray(code), out, runtime_s=1.0)

@@ -13,9 +13,10 @@ step returns the fault's parameters to nominal (an intermittent or repaired faul
 phase is discretised once, before the loop (:func:`truth_plan`); inside the loop the phase
 is selected by counting the phase boundaries already passed and gathering its matrices.
 
-Noise is drawn inside the scan from ``fold_in(key, k)``, so step k's noise does not
-depend on how the run is chunked, and runs of a Monte Carlo batch use their own keys
-(:func:`run_keys`).  ``x[k+1] = f(x[k], u[k]) + w[k]`` with ``w ~ N(0, Q)``,
+Step k's noise is a pure function of the run's key and k
+(:func:`uimm_jax.engine.noise.standard_noise`: Philox4x32-10 counters, Box-Muller), so it
+does not depend on how the run is chunked, and runs of a Monte Carlo batch use their own
+keys (:func:`run_keys`).  ``x[k+1] = f(x[k], u[k]) + w[k]`` with ``w ~ N(0, Q)``,
 ``y[k] = h(x[k]) + v[k]`` with ``v ~ N(0, R)``: the measurement at step k sees the state
 *after* the k-th transition, matching the filter's "predict with u[k], update with y[k]"
 convention (``x[-1] = x0``).
@@ -32,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from uimm_jax.engine import _block as bk
+from uimm_jax.engine.noise import standard_noise
 
 __all__ = [
     "INPUT_KINDS",
@@ -380,27 +382,6 @@ def _select(leaf: jax.Array, ph: jax.Array) -> jax.Array:
     """``leaf[..., *runs, ph]``: one phase per run (a gather: O(1) in the phase count)."""
     idx = jnp.broadcast_to(ph[..., None], leaf.shape[:-1] + (1,))
     return jnp.take_along_axis(leaf, idx, axis=-1)
-
-
-def standard_noise(key: jax.Array, k: jax.Array, size: int, runs: tuple, dtype) -> jax.Array:
-    """The standard normal draw of step ``k``: ``(size, *runs)``.
-
-    Each run's draw is ``normal(fold_in(key_r, k), (size,))``: it depends on the run's key
-    and the step only, never on the batch, the chunk or the device that computes it.
-
-    Args:
-        key: raw uint32 key(s) of the run(s): ``(2,)`` or ``(*runs, 2)``.
-        k: the step (int scalar).
-        size: ``n + m``, the process and measurement noise channels.
-        runs: the run axes of the batch (the draw is broadcast over them for one key).
-        dtype: float dtype.
-    """
-    flat_keys = key.reshape(-1, key.shape[-1])
-    z = jax.vmap(lambda kk: jax.random.normal(jax.random.fold_in(kk, k), (size,), dtype))(
-        flat_keys
-    )
-    z = jnp.moveaxis(z, 0, -1).reshape((size,) + (runs if key.ndim > 1 else ()))
-    return jnp.broadcast_to(z, (size,) + runs)
 
 
 def truth_step(

@@ -16,7 +16,8 @@ measurement noise (the filter keeps the scenario's ``Q`` and ``R``).
 
 **Randomness.**  ``run_keys = jax.random.split(PRNGKey(seed), runs)``; run ``r`` uses
 ``noise_key, draw_key = jax.random.split(run_keys[r])``: ``noise_key`` drives the truth
-noise (:func:`uimm_jax.engine.truth.truth_step`, step ``k`` from ``fold_in(noise_key, k)``) and
+noise (:func:`uimm_jax.engine.truth.truth_step`; step ``k`` from Philox counters ``(k, i)``
+under ``noise_key``, :func:`uimm_jax.engine.noise.standard_noise`) and
 ``draw_key`` the onsets drawn in a window (event ``e`` of a case from
 ``fold_in(draw_key, e)``).  Run ``r`` of every cell uses the same keys (common random
 numbers): cells differ only by what they vary, which sharpens comparisons between methods

@@ -78,7 +78,8 @@ segment and recomputes one segment at a time: memory ``O(sqrt(N))``.  The measur
 update's reverse mode is written by hand (:func:`uimm_jax.engine.kalman.kf_update`), so
 no ``lax.cond`` of the update and no unrolled factorisation is differentiated (see
 ``benchmarks/bench_gradient.py`` and ``docs/tuning.md`` for measured figures).  The truth
-is simulated inside the loop from ``fold_in(key, k)`` (nothing per step is stored).
+is simulated inside the loop, step ``k``'s noise a function of the key and ``k``
+(:func:`uimm_jax.engine.noise.standard_noise`; nothing per step is stored).
 
 **Evaluation** always uses the exact hard rule: :func:`hard_metrics` reads the hard
 declarations of the training forward pass, and :func:`evaluate` / :func:`before_after`
