@@ -54,7 +54,7 @@ import subprocess
 import sys
 import tomllib
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -91,7 +91,6 @@ class Entry:
     part_of: str = ""
     merge_into: str = ""
     check: str = ""
-    extra: dict = field(default_factory=dict, hash=False, compare=False)
 
 
 @dataclass(frozen=True)
