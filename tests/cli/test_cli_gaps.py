@@ -175,7 +175,11 @@ def test_measured_data_shorter_than_an_event(short_file, tmp_path, capsys):
 def test_float32_console_says_float32(short_file, tmp_path, capsys):
     args = ["run", str(short_file), "--float32", "--quiet", "--no-plots"]
     assert cli.main([*args, "--out", str(tmp_path / "o")]) == 0
-    assert re.search(r"^scenario .*float32\)$", capsys.readouterr().out, re.M)
+    printed = capsys.readouterr().out
+    assert re.search(r"^scenario .*float32\)$", printed, re.M)
+    # 100 steps are one chunk: no steady-state rate, and the line says so.
+    assert re.search(r"^filter runtime .* us/step, compilation included\)$", printed, re.M)
+    assert "steady state" not in printed
 
 
 def test_plant_with_a_repeated_fault_name_is_refused():

@@ -125,6 +125,54 @@ def test_run_writes_timeseries_npz(run_out):
     assert 0.9 < summary["fia"] <= 1.0  # the tuned scenario isolates both faults
 
 
+def _naive_run_rates(z) -> dict:
+    """TDR, FAR, FIA of one run from its timeseries.npz, written from docs/montecarlo.md.
+
+    Each model's fault set is read from its label: for UIMM ("D (no new fault)", "D + f")
+    D is the declared set before the sample; for IMM ("fault-free", "f + g") it is fixed.
+    """
+    bit = {name: 1 << j for j, name in enumerate(z["faults"])}
+    declared, truth, mu = z["declared"], z["truth"], z["mode_probs"]
+    N, M = mu.shape
+    d_before = np.concatenate([[0], declared[:-1]])
+    sets = np.zeros((N, M), np.int64)
+    for m, label in enumerate(z["model_labels"]):
+        names = [w.strip() for w in str(label).split("+")]
+        uimm = names[0].startswith("D")
+        code = sum(bit[w] for w in names if w in bit)
+        sets[:, m] = (d_before | code) if uimm else code
+    faulty, flagged = truth != 0, declared != 0
+    detected = faulty & flagged
+    true_prob = np.sum(np.where(sets == truth[:, None], mu, 0.0), axis=1)
+    return {
+        "tdr": detected.sum() / faulty.sum(),
+        "far": (flagged & ~faulty).sum() / (~faulty).sum(),
+        "fia": true_prob[detected].mean(),
+    }
+
+
+@pytest.fixture(scope="module")
+def imm_run_out(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("exports_imm")
+    path = write_short(tmp / "short.toml", 2)
+    out = tmp / "out"
+    args = ["run", str(path), "--quiet", "--no-plots", "--method", "imm", "--out", str(out)]
+    assert cli.main(args) == 0  # a warning line: initial_mode_probs adapted for "imm"
+    return out
+
+
+@pytest.mark.parametrize("fixture", ["run_out", "imm_run_out"])
+def test_run_rates_match_a_naive_reference_from_the_exports(fixture, request):
+    """summary.json's TDR/FAR/FIA = a per-sample loop over timeseries.npz (UIMM and IMM)."""
+    out = request.getfixturevalue(fixture)
+    summary = json.loads((out / "summary.json").read_text())
+    with np.load(out / "timeseries.npz") as z:
+        want = _naive_run_rates({k: z[k] for k in z.files})
+    assert summary["tdr"] == want["tdr"] and summary["far"] == want["far"]
+    assert summary["fia"] == pytest.approx(want["fia"], rel=1e-12)
+    assert 0.0 < want["tdr"] < 1.0 and 0.5 < want["fia"] <= 1.0  # not a trivial run
+
+
 def test_run_writes_decimated_csv(run_out):
     with np.load(run_out / "timeseries.npz") as z:
         declared, recognised = z["declared"], z["recognised"]

@@ -257,6 +257,28 @@ def test_plot_sweep(tmp_path):
     _saved(fig, tmp_path, "sweep")
 
 
+def test_plot_sweep_false_declarations_legend_covers_no_point(tmp_path):
+    """Two false declarations per run below full magnitude (the magnitude sweep): the
+    legend of that panel sits above the points, not on them."""
+    cells = [
+        {"method": m, "magnitude": mag, "detection_probability": {"a": 1.0},
+         "runs": 32, "false_declarations": (64 if m == "uimm" else 33) * (mag < 1.0)}
+        for m in ("uimm", "imm") for mag in (0.25, 0.5, 0.75, 1.0)
+    ]  # fmt: skip
+    fault_free = [{"method": m, "runs": 32, "false_declarations": 0} for m in ("uimm", "imm")]
+    fig = plots_sweep.plot_sweep(cells, fault_free=fault_free)
+    fig.canvas.draw()
+    ax = next(a for a in fig.axes if a.get_title().startswith("False declarations"))
+    box = ax.get_legend().get_window_extent()
+    for line in ax.get_lines():
+        if line.get_transform() != ax.transData:  # the fault-free lines span the axes
+            continue
+        xy = np.column_stack([line.get_xdata(), line.get_ydata()]).astype(float)
+        for px, py in ax.transData.transform(xy):
+            assert not (box.x0 <= px <= box.x1 and box.y0 <= py <= box.y1), (px, py, box)
+    _saved(fig, tmp_path, "sweep_false_legend")
+
+
 def test_plot_sweep_single_magnitude_is_a_dot_chart(tmp_path):
     cells = [
         {"method": m, "magnitude": 0.5, "detection_probability": {"a": 1.0, "b": 0.5},

@@ -334,3 +334,20 @@ def test_cli_tune_eval_only_evaluates_an_existing_file(tmp_path):
         exe + args3 + ["--before-from", first, "--quiet"], capture_output=True, text=True
     )
     assert res3.returncode == 2 and "--before-from" in res3.stderr
+
+
+def test_evaluation_progress_lines_are_labelled(capsys):
+    """The before/after sweeps' progress (``tune`` without ``--quiet``) names the stage.
+
+    It once raised a TypeError on the first progress call, after training had ended.
+    """
+    from uimm_jax.studies.tune_eval import _labelled
+
+    assert _labelled(False, "before") is False
+    report = _labelled(True, "after")
+    report("uimm sim1", 50, 200)
+    report("uimm sim1", 200, 200)
+    err = capsys.readouterr().err
+    assert "after: sweep uimm sim1" in err and " 25.0% of run-steps" in err
+    first, last = err.split("\r")
+    assert "100.0% of run-steps" in last and last.endswith("\n")

@@ -207,7 +207,8 @@ def plot_sweep(
     for ax in (ax_p, ax_i, ax_m, ax_r):
         ax.set_ylim(-0.03, 1.03)
     top = max([1.0] + [float(v) for ln in ax_f.get_lines() for v in np.atleast_1d(ln.get_ydata())])
-    ax_f.set_ylim(-0.03 * top, 1.05 * top)  # all zero: a 0..1 axis, not a 1e-17 one
+    # All zero: a 0..1 axis, not a 1e-17 one; the top band is left to the legend.
+    ax_f.set_ylim(-0.03 * top, 1.45 * top)
     pos = [d for d in delays_all if d > 0]
     if pos and len(pos) == len(delays_all) and max(pos) / min(pos) > 50:
         ax_d.set_yscale("log")
@@ -215,7 +216,8 @@ def plot_sweep(
         ax_p.legend(legend, [h.get_label() for h in legend], fontsize=7)
     for ax in (ax_i, ax_f, ax_m, ax_r):
         if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=7)
+            kw = {"loc": "upper center", "ncols": 2} if ax is ax_f else {}
+            ax.legend(fontsize=7, **kw)
     fig.suptitle(title if title is not None else "Monte Carlo sweep over fault magnitude")
     return fig
 

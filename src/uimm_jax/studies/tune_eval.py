@@ -7,6 +7,8 @@ held-out seeds; :func:`tuned_scenario` writes the tuned ``[filter]`` settings.
 
 from __future__ import annotations
 
+import sys
+import time
 from collections.abc import Mapping
 from typing import Any
 
@@ -16,7 +18,7 @@ from uimm_jax.engine import metrics
 from uimm_jax.engine.truth import NEVER
 from uimm_jax.scenario.parse import parse_scenario
 from uimm_jax.scenario.write import scenario_to_dict
-from uimm_jax.studies.sweep import _Eta, run_sweep
+from uimm_jax.studies.sweep import run_sweep
 from uimm_jax.studies.tune_loss import Problem, TrainingBatch
 
 __all__ = [
@@ -216,15 +218,28 @@ def before_after_table(before: dict, after: dict) -> str:
 
 
 def _labelled(progress, stage: str):
-    """``progress=True`` of :func:`run_sweep` with every line labelled ``stage``."""
+    """``progress=True`` of :func:`run_sweep` with every line labelled ``stage``.
+
+    The callable form of ``progress`` receives ``(label, run-steps done, run-steps in all)``;
+    this one prints them as one updating line on stderr, with an ETA from the pace so far.
+    """
     if progress is not True:
         return progress
-    state = {}
+    start: list[float] = []
 
     def report(label: str, done: int, total: int) -> None:
-        if "eta" not in state:
-            state["eta"] = _Eta(total)
-        state["eta"](f"{stage}: {label}", done)
+        if not start:
+            start.append(time.perf_counter())
+        elapsed = time.perf_counter() - start[0]
+        frac = done / max(total, 1)
+        eta = (1.0 - frac) * elapsed / frac if 0.0 < frac < 1.0 else 0.0
+        print(
+            f"  {stage}: sweep {label:24s} {100 * frac:5.1f}% of run-steps "
+            f"({elapsed:7.1f} s, ETA {eta:7.1f} s)",
+            end="\n" if done >= total else "\r",
+            file=sys.stderr,
+            flush=True,
+        )
 
     return report
 
