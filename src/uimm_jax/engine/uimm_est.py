@@ -364,7 +364,8 @@ class UIMMEstDiagnoser(Diagnoser):
         # Re-centre when a model that matters (mu >= 1 %) has moved from its expansion point.
         drift = jnp.where(cache.use, jnp.abs(st.mean[n:] - cache.a0), 0.0)
         matters = st.log_mode_probs >= np.log(0.01)
-        recentre = jnp.any((drift > s.relin) & matters)
+        # per run: a run's numbers never depend on its batch-mates
+        need = changed | jnp.any((drift > s.relin) & matters, axis=(0, 1))  # (*runs,)
 
         def rebuild(operand):
             st, c = operand
@@ -385,9 +386,21 @@ class UIMMEstDiagnoser(Diagnoser):
             swapped = jnp.where(models == 0, lw, jnp.where(is_win, l0, lm))
             lm = jnp.where(changed, swapped, lm)
             fresh = self._cache(new_declared, mean[n:])
-            return IMMState(mean, cov, lm), fresh
+            return IMMState(mean, cov, lm), jax.tree.map(_per_run(need), fresh, c)
 
-        return jax.lax.cond(jnp.any(changed) | recentre, rebuild, lambda o: o, (st, cache))
+        return jax.lax.cond(jnp.any(need), rebuild, lambda o: o, (st, cache))
+
+
+def _per_run(need: jax.Array):
+    """``(fresh, old) -> fresh`` on the runs where ``need``, else ``old`` (runs trailing)."""
+
+    def pick(fresh, old):
+        r = need.ndim
+        if r and fresh.ndim >= r and fresh.shape[fresh.ndim - r :] == need.shape:
+            return jnp.where(need, fresh, old)
+        return fresh  # a leaf without the run axes does not depend on the run
+
+    return pick
 
 
 @functools.partial(jax.jit, static_argnums=(0, 2))
