@@ -201,6 +201,7 @@ BLOCKS = (
           reason=BENCH),
     Entry("benchmarks/README.md", "bench_vs_reference.py --steps", "flags", reason=BENCH),
     Entry("benchmarks/README.md", "B=1 N=1000000: final declared sets equal", "text"),
+    Entry("benchmarks/README.md", "bench_imm_outputs.py", "flags", reason=BENCH),
     Entry("benchmarks/README.md", "bench_montecarlo.py --json mc.json", "flags", reason=BENCH),
     Entry("benchmarks/README.md", "gpu_check.sh --dry-run", "covered",
           by="tests/studies/test_gpu_path.py::test_gpu_check_dry_run_works_on_the_cpu",
