@@ -42,9 +42,10 @@ The blocks that run share a JAX compilation cache (a folder of this test session
 that a kernel that several blocks compile with the same shapes (the tuning gradient of
 docs/tuning.md) is compiled once; it changes no result.
 
-Cost (session 6, ``pytest -rP`` prints each block's CPU time): about 130 s of CPU for the
-file, of which ``uimm-jax tune`` (tuning.md:10, compiling the gradient) 49 s and the two
-sweeps of montecarlo.md:9 31 s; everything else 0.8-12 s a block.
+Cost (session 6, ``pytest -rP`` prints each block's CPU time): 98 s of CPU and 131 s wall
+for the file on the shared 2-core machine (130-230 s of CPU in sittings at load 6-15), of
+which ``uimm-jax tune`` (tuning.md:10, compiling the gradient) 30 s and the two sweeps of
+montecarlo.md:9 23 s; every other block 0.6-10 s.
 """
 
 from __future__ import annotations
