@@ -43,7 +43,7 @@ that a kernel that several blocks compile with the same shapes (the tuning gradi
 docs/tuning.md) is compiled once; it changes no result.
 
 Cost (session 6, ``pytest -rP`` prints each block's CPU time): 98 s of CPU and 131 s wall
-for the file on the shared 2-core machine (130-230 s of CPU in sittings at load 6-15), of
+for the file on the shared 2-core machine at load 5-6 (128 s of CPU at load 5-11), of
 which ``uimm-jax tune`` (tuning.md:10, compiling the gradient) 30 s and the two sweeps of
 montecarlo.md:9 23 s; every other block 0.6-10 s.
 """
