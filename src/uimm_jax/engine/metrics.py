@@ -23,7 +23,8 @@ On the device, :class:`RunMetrics` accumulates them in a scan carry
   is *isolated* when it lands on the diagonal (:func:`isolated`);
 * mode accuracy: the fraction of samples whose recognised fault set equals the truth;
 * the standard per-sample FDI rates (:class:`FDICounts`, :func:`fdi_terms`,
-  :func:`fdi_rates`), named as in the DX diagnostic competitions.  A sample is *faulty*
+  :func:`fdi_rates`), named after the DX diagnostic competitions' metrics but computed per
+  sample (those score whole scenarios; docs/montecarlo.md).  A sample is *faulty*
   when its true fault set is non-empty and *flagged* when the diagnoser's declared set
   after that sample is non-empty (the decision, not the instantaneous recognised mode):
 
