@@ -24,6 +24,12 @@ Joseph arithmetic on the steps where no filter of the batch needs it):
   used whenever a posterior variance falls below :data:`CANCELLATION_RATIO` of its prior
   (or is negative or NaN).
 
+Reverse mode: :func:`kf_update` is a ``jax.custom_vjp`` whose backward pass is written
+from the update's matrix differentials (:func:`_update_backward`) in block products: the
+covariance is differentiated as the Joseph form (stable whichever form the forward pass
+used), and neither the ``lax.cond`` nor the unrolled factorisation is differentiated.  The
+forward pass is unchanged.
+
 A non-finite measurement channel is *missing*: its row of ``H`` and its innovation are
 zeroed and its variance set to one, which leaves the other channels' update exact and
 contributes nothing to the log-likelihood.  An ``accept`` predicate (the IMM's innovation
@@ -232,8 +238,10 @@ def _update_backward(res: _Residuals, ct: UpdateResult, H, R, shapes):
 
     A gated filter has ``K = 0`` and no likelihood term; a missing channel's rows of
     ``S_bar`` and ``H_bar`` are zero.  Where pivots of ``S`` were floored (``repaired``)
-    this is the gradient of the update with the repaired ``S``.  Block products only, no
-    ``lax.cond``: measured ~x less than reverse mode through the unrolled factorisation.
+    this is the gradient of the update with the repaired ``S`` (the floor's increment
+    taken as a constant).  Block products only, no ``lax.cond``: with it (and
+    :func:`uimm_jax.engine._block.mirror_lower`'s) the tuning gradient of paper simulation
+    1 (1e5 samples, truth precomputed) went from 6.4x to 3.6x the loss's forward time.
     """
     P, _, Linv, W, e, valid, keep, _ = res
     n = P.shape[0]
