@@ -204,6 +204,8 @@ BLOCKS = (
     Entry("benchmarks/README.md", "B=1 N=1000000: final declared sets equal", "text"),
     Entry("benchmarks/README.md", "bench_imm_outputs.py", "flags", reason=BENCH),
     Entry("benchmarks/README.md", "bench_montecarlo.py --json mc.json", "flags", reason=BENCH),
+    Entry("benchmarks/README.md", "bench_gradient.py --batch 1 --repeat 3", "flags",
+          reason=BENCH),
     Entry("benchmarks/README.md", "gpu_check.sh --dry-run", "covered",
           by="tests/studies/test_gpu_path.py::test_gpu_check_dry_run_works_on_the_cpu",
           reason="the --dry-run line; the other two install the CUDA extra and need an "
