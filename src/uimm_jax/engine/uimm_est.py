@@ -134,6 +134,17 @@ class EstInfo(NamedTuple):
     retracted_now: jax.Array
 
 
+def _own_slots(F: int, nd: int) -> np.ndarray:
+    """``(F, F + 1, 1 x nd)`` bool: slot ``j + 1`` is fault ``j``'s own hypothesis."""
+    own = np.concatenate([np.zeros((F, 1), bool), np.eye(F, dtype=bool)], axis=1)
+    return own.reshape((F, F + 1) + (1,) * nd)
+
+
+def _mag_var(cov: jax.Array, n: int) -> jax.Array:
+    """``(F, M, *runs)``: every model's variance of every magnitude (``cov`` over ``[x; a]``)."""
+    return jnp.moveaxis(jnp.diagonal(cov[n:, n:], axis1=0, axis2=1), -1, 0)
+
+
 def _slot_of(declared: jax.Array) -> jax.Array:
     """``(F, *runs)`` model holding each fault's magnitude estimate (0 if declared)."""
     F = declared.shape[0]
@@ -161,9 +172,7 @@ class UIMMEstDiagnoser(Diagnoser):
 
     def model_sets(self, declared: jax.Array) -> jax.Array:
         """``(F, F + 1, *runs)``: ``[D, D xor f_1, ..., D xor f_F]``."""
-        F = declared.shape[0]
-        flip = np.concatenate([np.zeros((F, 1), bool), np.eye(F, dtype=bool)], axis=1)
-        return declared[:, None] ^ flip.reshape((F, F + 1) + (1,) * (declared.ndim - 1))
+        return declared[:, None] ^ _own_slots(declared.shape[0], declared.ndim - 1)
 
     def model_labels(self) -> list[str]:
         """Slots are relative to the declared set ``D``."""
@@ -230,11 +239,8 @@ class UIMMEstDiagnoser(Diagnoser):
         win by that feedback alone.
         """
         n, F, s = self.dyn.n, self.num_faults, self.settings
-        nd = use.ndim - 2
-        # (F, M, *runs): every model's variance of every magnitude
-        var_all = jnp.moveaxis(jnp.diagonal(st.cov[n:, n:], axis1=0, axis2=1), -1, 0)
-        own = np.concatenate([np.zeros((F, 1), bool), np.eye(F, dtype=bool)], axis=1)
-        own = own.reshape((F, F + 1) + (1,) * nd)
+        var_all = _mag_var(st.cov, n)
+        own = _own_slots(F, use.ndim - 2)
         own_mean = jnp.sum(jnp.where(own, st.mean[n:], 0.0), axis=1)  # (F, *runs)
         own_var = jnp.sum(jnp.where(own, var_all, 0.0), axis=1)
         live = st.log_mode_probs[1:] >= np.log(s.restart_below)  # (F, *runs)
@@ -262,13 +268,11 @@ class UIMMEstDiagnoser(Diagnoser):
         Raising a variance adds a PSD matrix (the covariance stays PSD).
         """
         n, F, s = self.dyn.n, self.num_faults, self.settings
-        hyp = (~declared)[:, None] & np.concatenate(
-            [np.zeros((F, 1), bool), np.eye(F, dtype=bool)], axis=1
-        ).reshape((F, F + 1) + (1,) * (declared.ndim - 1))  # (F, M, *runs)
+        hyp = (~declared)[:, None] & _own_slots(F, declared.ndim - 1)  # (F, M, *runs)
         mean = st.mean.at[n:].set(
             jnp.where(hyp, jnp.maximum(st.mean[n:], s.floor_mean), st.mean[n:])
         )
-        var = jnp.moveaxis(jnp.diagonal(st.cov[n:, n:], axis1=0, axis2=1), -1, 0)
+        var = _mag_var(st.cov, n)
         add = jnp.where(hyp, jnp.maximum(s.floor_sd**2 - var, 0.0), 0.0)
         eye = np.eye(F).reshape((F, F) + (1,) * (add.ndim - 1))
         cov = st.cov.at[n:, n:].add(eye * add[None])
@@ -296,7 +300,7 @@ class UIMMEstDiagnoser(Diagnoser):
         )
         imm_state = self._floor(imm_state, declared)
         mags = imm_state.mean[n:]  # (F, M, *runs)
-        var = jnp.moveaxis(jnp.diagonal(imm_state.cov[n:, n:], axis1=0, axis2=1), -1, 0)
+        var = _mag_var(imm_state.cov, n)
         slot = _slot_of(declared)
         pick = slot[:, None] == np.arange(self.num_models).reshape((1, -1) + (1,) * (slot.ndim - 1))
         est = jnp.sum(jnp.where(pick, mags, 0.0), axis=1)  # (F, *runs)
