@@ -310,6 +310,11 @@ def check_measurements(y, m: int, name: str = "measurements") -> np.ndarray:
 def check_no_inf(y, name: str = "measurements") -> None:
     """Refuse infinite measurements (NaN, not inf, marks a missing one)."""
     a = np.asarray(y)
+    # A finite sum means no inf and no NaN: one pass without a temporary array, half the
+    # time of ``isinf`` on 1e6 x 3 samples; missing data or an overflow take the full check.
+    with np.errstate(over="ignore", invalid="ignore"):
+        if np.isfinite(np.sum(a)):
+            return
     if np.any(np.isinf(a)):
         idx = tuple(int(v) for v in np.argwhere(np.isinf(a))[0])
         raise ValueError(

@@ -331,3 +331,49 @@ def test_no_recompilation_for_new_data_of_the_same_shapes():
         out = run_engine(second)
     assert compiles == [], f"second call with same shapes recompiled: {compiles}"
     assert_matches_naive(out, naive_imm(**second))
+
+
+# ---------------------------------------------------------------------------
+# the per-step arrays' transfer and the measurements' inf check (fast paths)
+
+
+def test_transfer_is_a_private_exact_copy():
+    from uimm_jax.studies.imm_filter import _to_device
+
+    rng = np.random.default_rng(5)
+    for shape in ((1000, 3), (7, 1), (5, 0)):
+        # 64-byte aligned, as JAX on a CPU would use it in place (and see later changes)
+        raw = np.empty(int(np.prod(shape)) * 8 + 64, np.uint8)
+        start = -raw.ctypes.data % 64
+        a = raw[start : start + int(np.prod(shape)) * 8].view(np.float64).reshape(shape)
+        a[...] = rng.standard_normal(shape)
+        keep = a.copy()
+        out = _to_device(a, np.float64)
+        a[...] = 0.0  # the caller changes its array after the call
+        assert out.shape == shape and out.dtype == np.float64
+        np.testing.assert_array_equal(np.asarray(out), keep)
+    x = np.linspace(0.0, 1.0, 11)[:, None]
+    np.testing.assert_array_equal(np.asarray(_to_device(x, np.float32)), x.astype(np.float32))
+
+
+@pytest.mark.parametrize(
+    "values, bad",
+    [
+        ([1.0, np.nan, np.inf], (2, 0)),  # NaN present: the sum is not finite either way
+        ([np.inf, -np.inf, 0.0], (0, 0)),  # inf - inf sums to NaN
+        ([1e308, 1e308, -np.inf], (2, 0)),
+    ],
+)
+def test_inf_measurements_refused_with_their_entry(values, bad):
+    problem = make_linear_problem(0, M=2, n=1, m=1, p=1, N=3)
+    problem["measurements"] = np.asarray(values, dtype=np.float64)[:, None]
+    with pytest.raises(ValueError, match=rf"measurements: entry \({bad[0]}, {bad[1]}\) is -?inf"):
+        run_engine(problem)
+
+
+def test_huge_finite_or_missing_measurements_are_accepted():
+    problem = make_linear_problem(0, M=2, n=1, m=1, p=1, N=4)
+    for values in ([1e308, 1e308, 1.0, 2.0], [np.nan, 1.0, np.nan, 2.0]):  # sum overflows / NaN
+        problem["measurements"] = np.asarray(values)[:, None]
+        out = run_engine(problem)
+        assert np.all(np.isfinite(out["mode_probs"]))
