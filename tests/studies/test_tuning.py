@@ -177,6 +177,25 @@ def test_gradient_matches_central_differences(small, couple):
     assert np.all(decl[0] > 0) and np.all(decl[1] == -1)
 
 
+def test_truth_in_the_loop_equals_precomputed_truth(small):
+    # The loss simulates each checkpoint segment's truth into a buffer before filtering
+    # it (tune_loss._run): the same loss and gradient as the stored truth, with segments
+    # that do not divide the run (a remainder segment) and without checkpoints.
+    sc, config, problem, batch, raw = small
+    _, vg_data = tune.make_loss_fn(problem, config)
+    (l0, p0), g0 = vg_data(raw, batch)
+    loop = batch._replace(data=None)
+    for seg, ck in ((32, True), (STEPS, False)):
+        cfg = dataclasses.replace(config, segment=seg, checkpoint=ck)
+        _, vg = tune.make_loss_fn(problem, cfg)
+        (l1, p1), g1 = vg(raw, loop)
+        assert float(l1) == pytest.approx(float(l0), rel=1e-12)
+        np.testing.assert_array_equal(np.asarray(p1.decl_step), np.asarray(p0.decl_step))
+        a, _ = _flat(g1)
+        b, _ = _flat(g0)
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12 * np.max(np.abs(b)))
+
+
 def test_decoupled_gradient_differs_from_coupled(small):
     # The default leaves the decision terms out of the filter's gradient: a real change.
     sc, config, problem, batch, raw = small

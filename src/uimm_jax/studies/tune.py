@@ -72,14 +72,15 @@ nothing is ever declared, a flat region of the delay surrogate; the decoupled on
 the chain sticky (cross-entropy) while raising the threshold and the persistence.
 
 **Long runs.**  The time loop is a nested ``lax.scan``: the outer scan runs segments of
-``segment`` steps (``sqrt(N) / 4`` by default), each segment a ``jax.checkpoint``-ed inner
-scan of the fused truth + diagnoser + surrogate step.  Reverse mode stores one carry per
+``segment`` steps (``sqrt(N) / 4`` by default), each segment ``jax.checkpoint``-ed: it
+simulates its samples' truth into a segment-sized buffer, then scans the diagnoser +
+surrogate step over the buffer.  Reverse mode stores one carry per
 segment and recomputes one segment at a time: memory ``O(sqrt(N))``.  The measurement
 update's reverse mode is written by hand (:func:`uimm_jax.engine.kalman.kf_update`), so
 no ``lax.cond`` of the update and no unrolled factorisation is differentiated (see
 ``benchmarks/bench_gradient.py`` and ``docs/tuning.md`` for measured figures).  The truth
 is simulated inside the loop, step ``k``'s noise a function of the key and ``k``
-(:func:`uimm_jax.engine.noise.standard_noise`; nothing per step is stored).
+(:func:`uimm_jax.engine.noise.standard_noise`; only one segment's samples are held).
 
 **Evaluation** always uses the exact hard rule: :func:`hard_metrics` reads the hard
 declarations of the training forward pass, and :func:`evaluate` / :func:`before_after`
