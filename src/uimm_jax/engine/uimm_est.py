@@ -295,9 +295,10 @@ class UIMMEstDiagnoser(Diagnoser):
 
         The variance a hypothesis hands over was accumulated during the race, at
         linearisation points on the way to the fault's size.  On ``Eh``'s log scale the
-        pressure equation's sensitivity to ``a`` falls by 10 per unit of ``a``, so the
-        samples taken near ``a = 1`` count 100-1000x too much information for a fault at
-        2-3: the estimate was declared at 1.5-1.8 with sd 0.02-0.03, then crept towards
+        pressure equation's sensitivity to ``a`` falls by 10 per unit of ``a``, so a sample
+        taken at ``a_hat`` counts ``10^(2 (a - a_hat))`` times too much information (10x for
+        2 declared at 1.5, 300x for 3 at 1.75): the estimate was declared at 1.5-1.8 with
+        sd 0.02-0.03, then crept towards
         the truth for hundreds of ms, and the bank explained the rest by retracting valve
         wear or declaring leakage (docs/faults.md, "Sizes").  Raising the variance adds a
         PSD matrix (the covariance stays PSD) and leaves the means (and the cache) alone.
