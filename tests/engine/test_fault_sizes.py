@@ -336,3 +336,67 @@ def test_user_plant_sensor_biases_step_ramp_and_end_are_sized_and_recognised():
         assert lo < d_["magnitude"] < hi
     assert [(r["fault"], r["correct"]) for r in s["retractions"]] == [("bias2", True)]
     assert s["mode_accuracy"] >= 0.95
+
+
+def test_gathered_cache_rebuild_equals_the_whole_batch_rebuild():
+    # Runs that need a rebuild are gathered into a group and pull their own result back;
+    # every run must get exactly the numbers of the whole-batch rebuild (the per-run rule).
+    import jax
+    import jax.numpy as jnp
+
+    import uimm_jax.engine.uimm_est as ue
+
+    diag = _est_setup().diagnoser
+    F, M, runs = 3, 4, (5, 8)  # two run axes, 40 runs
+    rng = np.random.default_rng(2)
+    declared = jnp.asarray(rng.random((F,) + runs) < 0.4)
+    a0 = jnp.asarray(rng.uniform(0.2, 3.0, (F, M) + runs))
+    old = diag._cache(jnp.zeros((F,) + runs, bool), jnp.ones((F, M) + runs))
+    whole = jax.jit(lambda need, d, a: jax.tree.map(ue._per_run(need), diag._cache(d, a), old))
+    for count, group in ((3, 8), (8, 8), (12, 32), (32, 32)):
+        need = np.zeros(40, bool)
+        need[rng.choice(40, count, replace=False)] = True
+        need = jnp.asarray(need.reshape(runs))
+        got = jax.jit(lambda need, d, a, g=group: ue._gathered(diag._cache, need, (d, a), old, g))
+        for a, b in zip(
+            jax.tree.leaves(got(need, declared, a0)),
+            jax.tree.leaves(whole(need, declared, a0)),
+            strict=True,
+        ):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_uimm_est_batch_steps_are_the_same_with_and_without_gathering(monkeypatch):
+    # The whole step over a batch of 40 runs, with the gathered rebuilds (groups of 8 and
+    # 32, the whole batch above) and with the whole-batch rebuild only: bit for bit.
+    import jax
+    import jax.numpy as jnp
+
+    import uimm_jax.engine.uimm_est as ue
+    from uimm_jax.studies.run import simulate_scenario
+
+    st = _est_setup(duration=0.05, events=(0.01, 0.03), mag=0.5)
+    diag, params = st.diagnoser, st.params
+    B, N = 40, 500
+    truth = simulate_scenario(st, 0)
+    rng = np.random.default_rng(3)
+    sd = np.sqrt(np.diag(np.asarray(params.imm.R)))[None, :, None]
+    ys = jnp.asarray(truth["y"][:N, :, None] + sd * rng.standard_normal((N, 3, B)))  # runs differ
+    us = jnp.asarray(np.broadcast_to(truth["u"][:N, :, None], (N, truth["u"].shape[1], B)))
+    s0 = jax.tree.map(lambda a: jnp.broadcast_to(a[..., None], a.shape + (B,)), st.init_state)
+
+    def run():
+        def body(s, uy):
+            s2, info = diag.step(s, params, *uy, with_cov=False)
+            return s2, (info, jnp.sum(jnp.any(s2.cache.a0 != s.cache.a0, axis=(0, 1))))
+
+        return jax.jit(lambda s: jax.lax.scan(body, s, (us, ys)))(s0)
+
+    gathered = run()
+    monkeypatch.setattr(ue, "REBUILD_GROUPS", ())
+    plain = run()
+    counts = np.asarray(gathered[1][1])
+    assert np.any((counts > 0) & (counts <= 8)) and np.any((counts > 8) & (counts <= 32))
+    assert np.any(counts > 32)  # every tier was taken
+    for a, b in zip(jax.tree.leaves(gathered), jax.tree.leaves(plain), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -41,7 +41,9 @@ A newly declared fault's magnitude is then re-opened to a standard deviation of 
 was counted at linearisation points far from the truth (``_reopen``).
 The cache's expansion point is re-centred whenever an estimate in use by a model of
 probability >= 1 % moves more than ``relin`` from it.  Rebuilds happen under
-``lax.cond``: only on steps that need them.
+``lax.switch``: only on steps that need them, and in a batch of runs only for the runs
+that need them, gathered into a group of ``REBUILD_GROUPS`` when they fit (a run's
+numbers are those of the whole-batch rebuild, bit for bit).
 """
 
 from __future__ import annotations
@@ -404,7 +406,7 @@ class UIMMEstDiagnoser(Diagnoser):
         # per run: a run's numbers never depend on its batch-mates
         need = changed | jnp.any((drift > s.relin) & matters, axis=(0, 1))  # (*runs,)
 
-        def rebuild(operand):
+        def rebuild(operand, group=None):
             st, c = operand
             onehot = (winner == models).astype(st.mean.dtype)  # (M, *runs)
             zero = (models == 0).astype(st.mean.dtype)
@@ -422,10 +424,52 @@ class UIMMEstDiagnoser(Diagnoser):
             l0 = lm[0]
             swapped = jnp.where(models == 0, lw, jnp.where(is_win, l0, lm))
             lm = jnp.where(changed, swapped, lm)
-            fresh = self._cache(new_declared, mean[n:])
-            return IMMState(mean, cov, lm), jax.tree.map(_per_run(need), fresh, c)
+            args = (new_declared, mean[n:])
+            if group:
+                fresh = _gathered(self._cache, need, args, c, group)
+            else:
+                fresh = jax.tree.map(_per_run(need), self._cache(*args), c)
+            return IMMState(mean, cov, lm), fresh
 
-        return jax.lax.cond(jnp.any(need), rebuild, lambda o: o, (st, cache))
+        groups = [g for g in REBUILD_GROUPS if g < need.size]
+        if not groups:
+            return jax.lax.cond(jnp.any(need), rebuild, lambda o: o, (st, cache))
+        # the smallest group that holds the runs in need, else the whole batch
+        count = jnp.sum(need)
+        branch = jnp.where(count == 0, 0, 1 + sum((count > g).astype(jnp.int32) for g in groups))
+        branches = [lambda o: o] + [functools.partial(rebuild, group=g) for g in groups]
+        return jax.lax.switch(branch, branches + [rebuild], (st, cache))
+
+
+REBUILD_GROUPS = (8, 32)
+"""Sizes of the gathered rebuilds (:func:`_gathered`; docs/faults.md, "Cost")."""
+
+
+def _gathered(fn, need: jax.Array, args: tuple, old, group: int):
+    """``fn(*args)`` on the (at most ``group``) runs where ``need``, ``old`` on the others.
+
+    ``need`` is ``(*runs,)``; every leaf of ``args`` and of ``old`` (the result's pytree)
+    ends with the run axes, and ``fn`` works run by run.  The runs in need are gathered
+    into a batch of ``group`` and each pulls its own result back (selects only): a run's
+    result is the one ``fn`` gives on the whole batch, bit for bit.
+    """
+    r = need.ndim
+    R = need.size
+    flat = lambda x: x.reshape(x.shape[: x.ndim - r] + (R,))
+    need_f = need.reshape(R)
+    # A run's slot: how many runs before it need one (a triangular count, not cumsum or
+    # nonzero, which cost more than the rebuild inside the compiled step; measured).
+    if R <= 1024:
+        before = np.tril(np.ones((R, R), bool), -1)  # [r, q]: q < r
+        pos = jnp.sum(before & need_f[None], axis=1)  # (R,)
+    else:  # the same numbers without an R x R mask
+        pos = jnp.cumsum(need_f.astype(jnp.int32)) - need_f
+    slot = need_f[None] & (pos[None] == np.arange(group)[:, None])  # (group, R)
+    idx = jnp.argmax(slot, axis=1)  # the run in each slot (0 for an empty slot: unused)
+    fresh = fn(*jax.tree.map(lambda x: jnp.take(flat(x), idx, axis=-1), args))
+    pos = jnp.minimum(pos, group - 1)
+    pull = lambda o, f: jnp.where(need_f, jnp.take(f, pos, axis=-1), flat(o)).reshape(o.shape)
+    return jax.tree.map(pull, old, fresh)
 
 
 def _per_run(need: jax.Array):
