@@ -241,7 +241,8 @@ def test_uimm_est_isolates_incipient_valve_wear_with_the_ramp_settings():
     d["filter"].pop("initial_mode_probs")
     d["events"] = [{"time": 0.5, "fault": "valve_wear", "magnitude": 0.5, "ramp": 1.0}]
     st = setup_scenario(parse_scenario(d), "uimm-est")
-    diag = dataclasses.replace(st.diagnoser, settings=EstSettings(restart_gap=1000, walk_rel=3e-3))
+    ramp_settings = EstSettings(restart_gap=1000, gap_first_only=True, walk_rel=3e-3)
+    diag = dataclasses.replace(st.diagnoser, settings=ramp_settings)
     flt = st.scenario.filter
     init = diag.init(
         np.asarray(flt.initial_mean),

@@ -116,7 +116,7 @@ class EstState(NamedTuple):
         run_len: ``(*runs,)`` int32, how many samples it has qualified.
         low_len: ``(F, *runs)`` int32, samples a declared estimate has stayed low.
         since: ``(F, *runs)`` int32, steps since each hypothesis last restarted from the
-            prior (counted up to ``restart_gap``).
+            prior (counted up to the larger of ``restart_gap`` and ``floor_gap``).
     """
 
     imm: IMMState
