@@ -251,12 +251,27 @@ def main() -> None:
     p.add_argument("--batch", type=int, default=128)
     p.add_argument("--tag", default="")
     p.add_argument("--walk", type=float, default=None, help="EstSettings.walk (exploration)")
+    p.add_argument(
+        "--set",
+        nargs="+",
+        default=[],
+        metavar="NAME=VALUE",
+        help="other EstSettings defaults for this run (exploration), e.g. restart_gap=200",
+    )
     args = p.parse_args()
     if args.walk is not None:
+        args.set = [f"walk={args.walk}", *args.set]
+    if args.set:
         import uimm_jax.engine.uimm_est as ue
 
-        d = ue.EstSettings.__new__.__defaults__
-        ue.EstSettings.__new__.__defaults__ = (args.walk,) + d[1:]
+        fields = ue.EstSettings._fields
+        d = dict(zip(fields, ue.EstSettings.__new__.__defaults__, strict=True))
+        for item in args.set:
+            name, _, value = item.partition("=")
+            if name not in d:
+                p.error(f"--set: {name!r} is not an EstSettings field ({', '.join(fields)})")
+            d[name] = type(d[name])(float(value)) if value else p.error(f"--set: {item!r}")
+        ue.EstSettings.__new__.__defaults__ = tuple(d.values())
     t0 = time.perf_counter()
     if args.part == "sizes":
         res = part_sizes(args)

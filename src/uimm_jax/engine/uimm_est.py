@@ -19,6 +19,9 @@ undeclared one its hypothesis' own estimate, or the prior ``N(prior_mean, prior_
 once that hypothesis has fallen below ``restart_below`` (it then restarts from the prior
 itself).  Mixing (eqs. 15-17) thus never blends a competing hypothesis' estimate with
 the prior, and the retraction hypothesis leaves a declared estimate alone.
+A hypothesis restarts at most once every ``restart_gap`` steps for its low
+probability (``floor_gap`` for being held at the floor), and a declared fault's walk can
+grow with its size (``walk_rel``): both are off by default (docs/faults.md, "Ramps").
 An undeclared hypothesis' own magnitude is kept ``>= floor_mean`` (and its standard
 deviation ``>= floor_sd``), so that it means "a fault" and does not settle on nominal in
 fault-free data; ``floor_mean`` is below ``declare_min`` so that the bound never decides
@@ -86,6 +89,13 @@ class EstSettings(NamedTuple):
         reopen_rel: on its declaration, a fault's magnitude standard deviation is raised
             to at least this fraction of its estimate, in every model (see ``_reopen``;
             0 turns it off).
+        restart_gap: steps between two restarts of a hypothesis for low probability
+            (1: at every step); a restart at the floor is not held back.
+        floor_gap: steps between two restarts of a hypothesis held at the floor.
+        gap_first_only: ``restart_gap`` holds only while no fault is declared (after a
+            declaration a hypothesis of low probability restarts at every step).
+        walk_rel: a declared fault's random walk has standard deviation
+            ``max(walk, walk_rel * |a|)`` at model 0's estimate ``a`` (0: ``walk``).
     """
 
     walk: float = 1e-3
@@ -98,6 +108,10 @@ class EstSettings(NamedTuple):
     relin: float = 0.02
     restart_below: float = 1e-3
     reopen_rel: float = 0.2
+    restart_gap: int = 1
+    floor_gap: int = 1
+    gap_first_only: bool = False
+    walk_rel: float = 0.0
 
 
 class EstState(NamedTuple):
@@ -110,6 +124,8 @@ class EstState(NamedTuple):
         run_model: ``(*runs,)`` int32, the model whose run counter is active.
         run_len: ``(*runs,)`` int32, how many samples it has qualified.
         low_len: ``(F, *runs)`` int32, samples a declared estimate has stayed low.
+        since: ``(F, *runs)`` int32, steps since each hypothesis last restarted from the
+            prior (counted up to the larger of ``restart_gap`` and ``floor_gap``).
     """
 
     imm: IMMState
@@ -118,6 +134,7 @@ class EstState(NamedTuple):
     run_model: jax.Array
     run_len: jax.Array
     low_len: jax.Array
+    since: jax.Array
 
 
 class EstInfo(NamedTuple):
@@ -238,9 +255,10 @@ class UIMMEstDiagnoser(Diagnoser):
             base.run_model,
             base.run_len,
             jnp.zeros((F,) + tuple(runs), jnp.int32),
+            jnp.full((F,) + tuple(runs), max(s.restart_gap, s.floor_gap), jnp.int32),
         )
 
-    def _reset_unused(self, st: IMMState, use: jax.Array, declared: jax.Array) -> IMMState:
+    def _reset_unused(self, st: IMMState, use: jax.Array, declared: jax.Array, since):
         """Magnitudes a model does not use: to the bank's belief about them, uncorrelated.
 
         For a declared fault that is model 0's current estimate (so that mixing with the
@@ -253,15 +271,28 @@ class UIMMEstDiagnoser(Diagnoser):
         the loser's estimate and lowers its likelihood further, which made one of two
         hypotheses that explain the data almost equally well (valve wear and leakage)
         win by that feedback alone.
+
+        ``since`` ``(F, *runs)`` counts the steps since each hypothesis last restarted.  A
+        hypothesis of low probability restarts only once every ``restart_gap`` steps
+        (with ``gap_first_only``: only while nothing is declared), and evolves on its own
+        estimate in between, so that it can gather the evidence to come back: restarting
+        at every step (``restart_gap = 1``) lets a one-step likelihood decide, which never
+        pays for the prior's width (docs/faults.md, "Ramps").  Returns the state and the
+        new ``since``.
         """
         n, F, s = self.dyn.n, self.num_faults, self.settings
         var_all = _mag_var(st.cov, n)
         own = _own_slots(F, use.ndim - 2)
         own_mean = jnp.sum(jnp.where(own, st.mean[n:], 0.0), axis=1)  # (F, *runs)
         own_var = jnp.sum(jnp.where(own, var_all, 0.0), axis=1)
-        live = st.log_mode_probs[1:] >= np.log(s.restart_below)  # (F, *runs)
-        live = live & (own_mean > s.floor_mean)  # a hypothesis held at its floor restarts
+        due = since >= s.restart_gap
+        if s.gap_first_only:
+            due = due | jnp.any(declared, axis=0)
+        low = (st.log_mode_probs[1:] < np.log(s.restart_below)) & due
+        held = (own_mean <= s.floor_mean) & (since >= s.floor_gap)  # held at its floor
+        live = ~low & ~held  # (F, *runs)
         restart = ~declared & ~live
+        since = jnp.where(restart, 1, jnp.minimum(since + 1, max(s.restart_gap, s.floor_gap)))
         use = use & ~(own & restart[:, None])
         tm = jnp.where(declared, st.mean[n:, 0], jnp.where(live, own_mean, s.prior_mean))
         tv = jnp.where(declared, var_all[:, 0], jnp.where(live, own_var, s.prior_sd**2))
@@ -273,7 +304,7 @@ class UIMMEstDiagnoser(Diagnoser):
         diag_t = jnp.where(eye, tv[:, None], 0.0)  # (F, n+F, 1, *runs): target variances
         target = jnp.concatenate([jnp.zeros((n, n + F) + diag_t.shape[2:], st.cov.dtype), diag_t])
         cov = jnp.where(keep, st.cov, target)
-        return IMMState(mean, cov, st.log_mode_probs)
+        return IMMState(mean, cov, st.log_mode_probs), since.astype(jnp.int32)
 
     def _floor(self, st: IMMState, declared: jax.Array) -> IMMState:
         """An undeclared hypothesis' own magnitude: mean ``>= floor_mean``, sd ``>= floor_sd``.
@@ -325,9 +356,15 @@ class UIMMEstDiagnoser(Diagnoser):
         n, F, s = self.dyn.n, self.num_faults, self.settings
         declared = state.declared
         dtype = state.imm.mean.dtype
-        imm0 = self._reset_unused(state.imm, state.cache.use, declared)
+        imm0, since = self._reset_unused(state.imm, state.cache.use, declared, state.since)
         q_aug = jnp.zeros((n + F, n + F), dtype).at[:n, :n].set(params.imm.Q)
         q_aug = q_aug.at[n:, n:].set(jnp.eye(F, dtype=dtype) * s.walk**2)
+        if s.walk_rel:  # a declared fault's walk grows with its size: Q per run
+            sd = jnp.maximum(s.walk, s.walk_rel * jnp.abs(state.imm.mean[n:, 0]))
+            extra = jnp.where(declared, sd**2 - s.walk**2, 0.0).astype(dtype)  # (F, *runs)
+            pad = jnp.concatenate([jnp.zeros((n,) + extra.shape[1:], dtype), extra])
+            eye = np.eye(n + F).reshape((n + F, n + F, 1) + (1,) * (extra.ndim - 1))
+            q_aug = q_aug.reshape(q_aug.shape + (1,) * extra.ndim) + eye * pad[:, None, None]
         imm_params = IMMParams(params.imm.log_transition, q_aug, params.imm.R)
         imm_state, info = imm_step(
             self.aug, imm0, state.cache, imm_params, u, y, gate=self.gate, with_cov=with_cov
@@ -380,6 +417,7 @@ class UIMMEstDiagnoser(Diagnoser):
             dec.candidate,
             jnp.where(any_ret, 0, dec.run_len),
             low_len,
+            since,
         )
         recognised = jnp.where(any_ret, new_declared, dec.candidate_set)
         step_info = info._replace(
