@@ -452,6 +452,37 @@ def test_products_with_a_constant_selection_matrix_are_the_dense_products(rows):
     np.testing.assert_array_equal(bk.mv(S, v), np.einsum("ik,kb->ib", S, v))
 
 
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_cholesky_log_determinant_is_the_sum_of_log_pivots_at_any_scale(dtype):
+    # The log-determinant takes one log of the product of the pivots' mantissas: it must
+    # equal the sum of the (floored) pivots' logs whatever their scale, where a plain
+    # product of pivots would underflow or overflow, and keep +inf / -inf for degenerate S.
+    from uimm_jax.engine import _block as bk
+
+    fi = np.finfo(dtype)
+    floor = float(fi.tiny) ** 0.5
+    rng = np.random.default_rng(1)
+    for m in (1, 3, 6):
+        a = rng.standard_normal((m, m))
+        s = a @ a.T + m * np.eye(m)
+        for scale in (fi.tiny**0.3, 1e-12, 1.0, 1e12, fi.max**0.3):
+            sm = (s * scale).astype(dtype)
+            _, logdet, repaired = bk.inv_cholesky(jnp.asarray(sm)[..., None], floor)
+            assert not bool(repaired[0])
+            want = 2.0 * np.sum(np.log(np.diag(np.linalg.cholesky(sm.astype(np.float64)))))
+            assert logdet.dtype == dtype
+            np.testing.assert_allclose(
+                float(logdet[0]), want, rtol=20 * fi.eps, atol=50 * m * fi.eps
+            )
+    # Floored pivots enter at the floor; an infinite diagonal gives +inf, no NaN.
+    _, logdet, _ = bk.inv_cholesky(jnp.zeros((3, 3, 1), dtype), floor)
+    np.testing.assert_allclose(float(logdet[0]), 3 * np.log(dtype(floor)), rtol=4 * fi.eps)
+    s_inf = np.diag([np.inf, 1.0, 2.0]).astype(dtype)[..., None]
+    assert float(bk.inv_cholesky(jnp.asarray(s_inf), floor)[1][0]) == np.inf
+    # A floor below the smallest normal number admits zero pivots: log det = -inf.
+    assert float(bk.inv_cholesky(jnp.zeros((3, 3, 1), dtype), 0.0)[1][0]) == -np.inf
+
+
 def test_batch_kernel_on_linear_models_equals_the_kalman_filter():
     """A bank of 3 different linear models with an identity transition: 3 independent KFs.
 
