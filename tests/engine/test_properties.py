@@ -110,11 +110,12 @@ def test_imm_filter_invariants_and_reference(problem):
 
 
 @st.composite
-def diagnoser_variants(draw):
+def diagnoser_variants(draw, method="uimm"):
     """Random settings of the short tuned scenarios (same compiled diagnoser for all)."""
     t1 = draw(st.floats(0.05, 0.6))
     t2 = draw(st.floats(t1 + 0.01, 0.95))
     d = short_dict(draw(st.sampled_from([1, 2])), events=(t1, t2))
+    d["filter"]["method"] = method
     d["seed"] = draw(st.integers(0, 2**31 - 1))
     for ev in d["events"]:
         # <= 1.1: air_in_oil (Eh 6e6 -> 6e5) takes Eh <= 0 past magnitude 1/0.9, refused
@@ -149,4 +150,27 @@ def test_diagnoser_invariants(sc):
     # Determinism: a second run is bit-identical.
     _, again = filter_measurements(setup, truth["y"], truth["u"], chunk=CHUNK)
     for k in ("mode_probs", "mean", "declared", "recognised", "health"):
+        np.testing.assert_array_equal(out[k], again[k], err_msg=k)
+
+
+@settings(SETTINGS, max_examples=8)
+@given(diagnoser_variants(method="uimm-est"))
+def test_size_estimating_diagnoser_invariants(sc):
+    """uimm-est: declarations may be retracted, but one fault changes per step at most."""
+    setup = setup_scenario(sc)
+    truth = simulate_scenario(setup, chunk=CHUNK)
+    _, out = filter_measurements(setup, truth["y"], truth["u"], chunk=CHUNK)
+    assert all_finite(out)
+    mu = out["mode_probs"]
+    assert np.all(mu >= 0)
+    np.testing.assert_allclose(mu.sum(axis=1), 1.0, rtol=0, atol=1e-12)
+    declared = out["declared"].astype(np.int64)
+    change = declared[1:] ^ declared[:-1]
+    assert np.all((change & (change - 1)) == 0)
+    # The recognised set is D or differs from it by one fault (the bank's models).
+    diff = out["recognised"].astype(np.int64) ^ np.concatenate([[0], declared[:-1]])
+    assert np.all((diff & (diff - 1)) == 0)
+    assert np.all(out["magnitude_sd"] >= 0)
+    _, again = filter_measurements(setup, truth["y"], truth["u"], chunk=CHUNK)
+    for k in ("mode_probs", "mean", "declared", "recognised", "magnitude"):
         np.testing.assert_array_equal(out[k], again[k], err_msg=k)

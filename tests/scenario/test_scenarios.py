@@ -93,6 +93,11 @@ def test_paper_scenarios_follow_the_paper(sim, second):
     assert s.num_models() == 4 and s.num_models("imm") == 8
     np.testing.assert_array_equal(f.transition, PAPER_TRANSITION)
     np.testing.assert_array_equal(s.transition_matrix(), PAPER_TRANSITION)
+    # uimm-est has the UIMM's bank layout: the matrix written for "uimm" is its own too.
+    np.testing.assert_array_equal(s.transition_matrix("uimm-est"), PAPER_TRANSITION)
+    np.testing.assert_array_equal(s.initial_mode_probs("uimm-est"), f.initial_mode_probs)
+    with pytest.raises(ValueError, match="cannot be used for method 'imm'"):
+        s.transition_matrix("imm")
     np.testing.assert_allclose(f.initial_mode_probs, PAPER_PROBS / 1.2, rtol=1e-15)
     assert abs(f.initial_mode_probs.sum() - 1.0) < 1e-12
     np.testing.assert_array_equal(f.initial_mean, np.zeros(3))

@@ -129,7 +129,8 @@ def _naive_run_rates(z) -> dict:
     """TDR, FAR, FIA of one run from its timeseries.npz, written from docs/montecarlo.md.
 
     Each model's fault set is read from its label: for UIMM ("D (no new fault)", "D + f")
-    D is the declared set before the sample; for IMM ("fault-free", "f + g") it is fixed.
+    D is the declared set before the sample; for the size-estimating UIMM ("D (no change)",
+    "D +/- f") it is D with f toggled; for IMM ("fault-free", "f + g") it is fixed.
     """
     bit = {name: 1 << j for j, name in enumerate(z["faults"])}
     declared, truth, mu = z["declared"], z["truth"], z["mode_probs"]
@@ -137,10 +138,11 @@ def _naive_run_rates(z) -> dict:
     d_before = np.concatenate([[0], declared[:-1]])
     sets = np.zeros((N, M), np.int64)
     for m, label in enumerate(z["model_labels"]):
-        names = [w.strip() for w in str(label).split("+")]
+        names = [w.strip(" /-") for w in str(label).split("+")]
         uimm = names[0].startswith("D")
         code = sum(bit[w] for w in names if w in bit)
-        sets[:, m] = (d_before | code) if uimm else code
+        toggle = "+/-" in str(label)
+        sets[:, m] = (d_before ^ code) if toggle else (d_before | code) if uimm else code
     faulty, flagged = truth != 0, declared != 0
     detected = faulty & flagged
     true_prob = np.sum(np.where(sets == truth[:, None], mu, 0.0), axis=1)
@@ -161,9 +163,19 @@ def imm_run_out(tmp_path_factory):
     return out
 
 
-@pytest.mark.parametrize("fixture", ["run_out", "imm_run_out"])
+@pytest.fixture(scope="module")
+def uimm_run_out(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("exports_uimm")
+    path = write_short(tmp / "short.toml", 1)
+    out = tmp / "out"
+    args = ["run", str(path), "--quiet", "--no-plots", "--method", "uimm", "--out", str(out)]
+    assert cli.main(args) == 0
+    return out
+
+
+@pytest.mark.parametrize("fixture", ["run_out", "uimm_run_out", "imm_run_out"])
 def test_run_rates_match_a_naive_reference_from_the_exports(fixture, request):
-    """summary.json's TDR/FAR/FIA = a per-sample loop over timeseries.npz (UIMM and IMM)."""
+    """summary.json's TDR/FAR/FIA = a per-sample loop over timeseries.npz (all three methods)."""
     out = request.getfixturevalue(fixture)
     summary = json.loads((out / "summary.json").read_text())
     with np.load(out / "timeseries.npz") as z:
@@ -176,7 +188,7 @@ def test_run_rates_match_a_naive_reference_from_the_exports(fixture, request):
 def test_run_writes_decimated_csv(run_out):
     with np.load(run_out / "timeseries.npz") as z:
         declared, recognised = z["declared"], z["recognised"]
-        mode_probs = z["mode_probs"]
+        mode_probs, label0 = z["mode_probs"], str(z["model_labels"][0])
     rows = list(csv.DictReader((run_out / "timeseries.csv").open()))
     steps = [int(r["step"]) for r in rows]
     assert steps == list(decimation_steps(declared, recognised, 50))
@@ -184,7 +196,7 @@ def test_run_writes_decimated_csv(run_out):
     for r in rows[::37]:
         k = int(r["step"])
         assert int(r["declared"]) == declared[k]
-        assert float(r["mode_prob:D (no new fault)"]) == pytest.approx(mode_probs[k, 0], 1e-8)
+        assert float(r[f"mode_prob:{label0}"]) == pytest.approx(mode_probs[k, 0], 1e-8)
     assert rows[-1]["declared_set"] == "valve_wear+leakage"
 
 

@@ -33,6 +33,11 @@ from uimm_jax.studies.run import filter_measurements, run_scenario, setup_scenar
 
 #: Stated tolerance on declaration times, float32 vs float64 (docs/robustness.md).
 DECLARATION_TOLERANCE_S = 1e-3
+#: Stated tolerance on the mean absolute mode-probability difference, per method
+#: (docs/robustness.md: uimm-est measured 7e-5 on sim 1 and 1.4e-3 on sim 2).
+MODE_PROB_TOLERANCE = {"uimm": 1e-3, "uimm-est": 3e-3}
+#: Stated tolerance on the declared magnitudes' relative difference (uimm-est).
+MAGNITUDE_TOLERANCE = 1e-2
 
 
 def test_scaling_is_an_exact_similarity_transform():
@@ -82,19 +87,26 @@ def test_resolution_warning_and_x64_requirement():
 
 @pytest.fixture(scope="module")
 def pair():
-    """float64 and float32 runs of both short tuned scenarios on the same truth."""
+    """float64 and float32 runs of both short tuned scenarios on the same truth.
+
+    Keyed by ``sim`` for the scenario's own method (uimm-est) and by ``(sim, "uimm")``
+    for the fixed-size UIMM.
+    """
     out = {}
     for sim in (1, 2):
-        sc = short_scenario(sim)
-        r64 = run_scenario(sc, chunk=CHUNK)
-        r32 = run_scenario_float32(sc, chunk=CHUNK)
-        out[sim] = (sc, r64, r32)
+        for key, changes in ((sim, {}), ((sim, "uimm"), {"filter__method": "uimm"})):
+            sc = short_scenario(sim, **changes)
+            r64 = run_scenario(sc, chunk=CHUNK)
+            r32 = run_scenario_float32(sc, chunk=CHUNK)
+            out[key] = (sc, r64, r32)
     return out
 
 
+@pytest.mark.parametrize("method", ["uimm-est", "uimm"])
 @pytest.mark.parametrize("sim", [1, 2])
-def test_float32_agrees_with_float64_on_the_tuned_scenarios(pair, sim):
-    sc, r64, r32 = pair[sim]
+def test_float32_agrees_with_float64_on_the_tuned_scenarios(pair, sim, method):
+    sc, r64, r32 = pair[sim if method == "uimm-est" else (sim, method)]
+    assert sc.filter.method == method
     assert r32.summary["dtype"] == "float32" and r64.summary["dtype"] == "float64"
     assert r32.outputs["mode_probs"].dtype == np.float32
     np.testing.assert_array_equal(r32.truth["y"], r64.truth["y"])  # same float64 truth
@@ -105,8 +117,11 @@ def test_float32_agrees_with_float64_on_the_tuned_scenarios(pair, sim):
     assert agree["same_faults"], (r64.summary["declarations"], r32.summary["declarations"])
     assert [d["fault"] for d in r32.summary["declarations"]] == [e.fault for e in sc.events]
     assert agree["declaration_time_diff_s"] <= DECLARATION_TOLERANCE_S
-    assert agree["mean_abs_mode_prob_diff"] < 1e-3
+    assert agree["mean_abs_mode_prob_diff"] < MODE_PROB_TOLERANCE[method]
     assert agree["recognised_disagreement"] < 1e-3
+    for d64, d32 in zip(r64.summary["declarations"], r32.summary["declarations"], strict=True):
+        if "magnitude" in d64:  # uimm-est: the estimated sizes agree
+            assert d32["magnitude"] == pytest.approx(d64["magnitude"], rel=MAGNITUDE_TOLERANCE)
     assert r32.summary["health"] == r64.summary["health"]
     # The float32 estimate stays within the measurement noise of float64's (typically
     # 1 % of it; the largest gaps are at the fault onsets).
@@ -147,11 +162,25 @@ def micro_scenario():
     return parse_scenario(d, source="micro")
 
 
+def _assert_same_declarations(a: list[dict], b: list[dict]) -> None:
+    """Equal declarations; uimm-est's estimated sizes equal up to rounding (1e-9)."""
+    assert len(a) == len(b), (a, b)
+    for da, db in zip(a, b, strict=True):
+        sizes = ("magnitude", "magnitude_ci")
+        assert {k: v for k, v in da.items() if k not in sizes} == {
+            k: v for k, v in db.items() if k not in sizes
+        }
+        for key in sizes:
+            if key in da:
+                np.testing.assert_allclose(da[key], db[key], rtol=1e-9)
+
+
 def test_scaling_makes_float32_independent_of_units(pair):
     sc = micro_scenario()
     r64 = run_scenario(sc, chunk=CHUNK)
     _, base64, _ = pair[1]
-    assert r64.summary["declarations"] == base64.summary["declarations"]  # units do not matter
+    # units do not matter (the estimated sizes up to rounding)
+    _assert_same_declarations(r64.summary["declarations"], base64.summary["declarations"])
     r32 = run_scenario_float32(sc, chunk=CHUNK)
     d64, d32 = r64.summary["declarations"], r32.summary["declarations"]
     scaled = float32_agreement(r64.outputs, r32.outputs, d64, d32)

@@ -370,3 +370,11 @@ def test_evaluation_progress_lines_are_labelled(capsys):
     assert "after: sweep uimm sim1" in err and " 25.0% of run-steps" in err
     first, last = err.split("\r")
     assert "100.0% of run-steps" in last and last.endswith("\n")
+
+
+def test_tuning_refuses_the_size_estimating_method_with_the_way_out():
+    """The shipped tuned files run uimm-est; tuning trains the fixed-size UIMM's loss."""
+    sc = load_scenario(ROOT / "scenarios" / "paper_sim1_tuned.toml")
+    assert sc.filter.method == "uimm-est"
+    with pytest.raises(ValueError, match=r"supports method 'uimm'.*method = \"uimm\""):
+        tune.make_batch(sc, [tune.scenario_case(sc)], 1, seed=0)

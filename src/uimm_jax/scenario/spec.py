@@ -38,6 +38,7 @@ __all__ = [
     "InputSpec",
     "Scenario",
     "nonpositive_param",
+    "same_bank",
 ]
 
 METHODS = ("uimm", "imm", "uimm-est")
@@ -266,7 +267,7 @@ class Scenario:
         method = method or self.filter.method
         size = self.num_models(method)
         if self.filter.transition is not None:
-            if method != self.filter.method:
+            if not same_bank(method, self.filter.method):
                 raise ValueError(
                     f"scenario {self.name!r} gives [filter].transition in full for method "
                     f"{self.filter.method!r}; it cannot be used for method {method!r} "
@@ -295,13 +296,23 @@ class Scenario:
         method = method or self.filter.method
         size = self.num_models(method)
         if self.filter.initial_mode_probs is not None:
-            if method != self.filter.method:
+            if not same_bank(method, self.filter.method):
                 raise ValueError(
                     f"scenario {self.name!r} gives [filter].initial_mode_probs for method "
                     f"{self.filter.method!r}; it cannot be used for method {method!r}."
                 )
             return np.array(self.filter.initial_mode_probs, dtype=np.float64)
         return _default_mode_probs(size)
+
+
+def same_bank(a: str, b: str) -> bool:
+    """True when methods ``a`` and ``b`` have the same bank layout.
+
+    ``"uimm"`` and ``"uimm-est"`` both have ``F + 1`` models, model 0 the declared set and
+    model ``j + 1`` fault ``j``'s hypothesis, so a transition matrix or initial mode
+    probabilities written for one mean the same for the other.
+    """
+    return a == b or {a, b} <= {"uimm", "uimm-est"}
 
 
 def _num_models(method: str, num_faults: int) -> int:

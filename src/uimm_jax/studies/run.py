@@ -46,6 +46,7 @@ from uimm_jax.engine.uimm import Diagnoser, DiagParams, make_params
 from uimm_jax.engine.uimm_est import Z95, UIMMEstDiagnoser, build_diagnoser
 from uimm_jax.errors import UIMMWarning
 from uimm_jax.plants.dynamics import make_dynamics
+from uimm_jax.scenario.spec import same_bank
 from uimm_jax.studies.checks import check_run_data, check_setup_args
 from uimm_jax.studies.measured import truth_for_measurements
 from uimm_jax.studies.truth import (
@@ -121,14 +122,15 @@ def _cached_diagnoser(plant, dt, method, gate, faults_key, nominal_key):
 def resolve_filter_settings(scenario, method: str) -> tuple[np.ndarray, np.ndarray]:
     """Transition matrix and initial mode probabilities for ``method``.
 
-    When ``method`` is not the scenario's own and the scenario gives them in full for
-    its own method, they are adapted with a warning: the stay probability becomes the
-    mean of the given diagonal and model 0 keeps the given first probability, the rest
-    being shared equally.
+    When ``method``'s bank differs from the scenario's method's (``"imm"`` against
+    ``"uimm"`` or ``"uimm-est"``) and the scenario gives them in full for its own method,
+    they are adapted with a warning: the stay probability becomes the mean of the given
+    diagonal and model 0 keeps the given first probability, the rest being shared equally.
     """
     flt = scenario.filter
     M = scenario.num_models(method)
-    if method == flt.method or flt.transition is None:
+    own = same_bank(method, flt.method)  # uimm and uimm-est share the bank's layout
+    if own or flt.transition is None:
         P = scenario.transition_matrix(method)
     else:
         stay = float(np.mean(np.diag(flt.transition)))
@@ -141,7 +143,7 @@ def resolve_filter_settings(scenario, method: str) -> tuple[np.ndarray, np.ndarr
         )
         P = np.full((M, M), (1 - stay) / max(M - 1, 1))
         np.fill_diagonal(P, stay)
-    if method == flt.method or flt.initial_mode_probs is None:
+    if own or flt.initial_mode_probs is None:
         mu0 = scenario.initial_mode_probs(method)
     else:
         p0 = float(flt.initial_mode_probs[0])

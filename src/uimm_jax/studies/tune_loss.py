@@ -161,8 +161,14 @@ def make_batch(
     """
     dtype = dtype or jnp.asarray(0.0).dtype
     if scenario.filter.method != "uimm":
+        hint = (
+            "; its settings are the fixed-size UIMM's too (same bank layout): tune a copy "
+            'with [filter] method = "uimm" and set the method back in the result'
+            if scenario.filter.method == "uimm-est"
+            else ""
+        )
         raise ValueError(
-            f"tuning supports method 'uimm' (the scenario's is {scenario.filter.method!r})"
+            f"tuning supports method 'uimm' (the scenario's is {scenario.filter.method!r}){hint}"
         )
     setup = setup_scenario(scenario, dtype=dtype)
     diag = setup.diagnoser
