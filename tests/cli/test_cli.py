@@ -14,10 +14,11 @@ import numpy as np
 import pytest
 
 import uimm_jax
-from _robustness_helpers import CHUNK, REPO, short_scenario, write_short
+from _robustness_helpers import CHUNK, REPO, short_dict, short_scenario, write_short
 from uimm_jax import cli
 from uimm_jax.errors import ScenarioError
 from uimm_jax.scenario.parse import load_scenario
+from uimm_jax.scenario.write import dump_scenario
 from uimm_jax.studies.run import run_scenario
 
 MALFORMED_DIR = Path(__file__).resolve().parents[1] / "malformed"
@@ -213,3 +214,25 @@ def test_help_shows_no_docstring_markup(command, capsys):
     assert text.startswith("usage: uimm-jax")
     for markup in ("``", ":mod:", ":func:", ":class:", "`"):
         assert markup not in text, (markup, text)
+
+
+def test_run_prints_sizes_and_retractions_of_uimm_est(tmp_path, capsys, monkeypatch):
+    """uimm-est's summary lines: each declaration's size and interval, each retraction."""
+    monkeypatch.setattr(warnings, "showwarning", warnings.showwarning)  # main() replaces it
+    d = short_dict(2, events=(0.3, 0.5))
+    d["events"][1]["end"] = 0.8  # air in oil ends: retracted
+    path = dump_scenario(d, tmp_path / "s.toml")
+    out = tmp_path / "out"
+    assert cli.main(["run", str(path), "--no-plots", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["method"] == "uimm-est" and summary["retractions"]
+    for dec in summary["declarations"]:
+        lo, hi = dec["magnitude_ci"]
+        want = f"magnitude {dec['magnitude']:.3g} [{lo:.3g}, {hi:.3g}]"
+        assert re.search(rf"declared {dec['fault']}\s+at .*{re.escape(want)}", text), text
+    retracted = re.findall(r"retracted (\w+)\s+at\s+([\d.]+) s  \[(ok|FALSE)\]", text)
+    assert [(f, float(t), tag) for f, t, tag in retracted] == [
+        (r["fault"], round(r["time"], 4), "ok" if r["correct"] else "FALSE")
+        for r in summary["retractions"]
+    ]

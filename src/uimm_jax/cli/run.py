@@ -151,7 +151,14 @@ def _print_summary(s: dict) -> None:
         print(f"  truth  {e['fault']:<22s} at {e['time']:8.3f} s -> {verdict}")
     for d in s["declarations"]:
         tag = "ok" if d["correct"] else "FALSE"
-        print(f"  declared {d['fault']:<20s} at {d['time']:8.4f} s  [{tag}]")
+        size = ""
+        if d.get("magnitude") is not None:  # uimm-est: the size at the end, 95 % interval
+            lo, hi = d["magnitude_ci"]
+            size = f"  magnitude {d['magnitude']:.3g} [{lo:.3g}, {hi:.3g}]"
+        print(f"  declared {d['fault']:<20s} at {d['time']:8.4f} s  [{tag}]{size}")
+    for r in s.get("retractions", []):
+        tag = "ok" if r["correct"] else "FALSE"
+        print(f"  retracted {r['fault']:<19s} at {r['time']:8.4f} s  [{tag}]")
     print(f"false declarations  {s['false_declarations']}")
     print(f"mode accuracy       {s['mode_accuracy']:.4f}")
     comp = s.get("compile_s")
