@@ -28,6 +28,7 @@ output arithmetic costs, the second minus the third what the output bytes cost.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import resource
 import time
 from pathlib import Path
@@ -90,6 +91,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     ref = _load_reference(args.reference)
     sc = uimm_jax.load_scenario(REPO / "scenarios" / "paper_sim1_tuned.toml")
+    sc = dataclasses.replace(sc, filter=dataclasses.replace(sc.filter, method="uimm"))  # not -est
     u, y, s = _truth(runner.setup_scenario(sc), args.steps, 1)
     bank, kw = _bank(s)
     uf, yf = u[:, None], y[:, :, 0]

@@ -101,6 +101,7 @@ def _child(args) -> dict:
     }
     base = uimm_jax.load_scenario(args.scenario)
     data = scenario_to_dict(base)
+    data["filter"]["method"] = "uimm"  # the paper's UIMM (the tuned files run uimm-est)
     data["duration"] = round(args.steps * base.dt, 12)
     data["events"] = [e for e in data["events"] if e["time"] < data["duration"]]
     scenario = parse_scenario(data)
