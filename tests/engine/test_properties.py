@@ -129,9 +129,9 @@ def diagnoser_variants(draw, method="uimm"):
     return parse_scenario(d, source="hypothesis")
 
 
-@SETTINGS
-@given(diagnoser_variants())
-def test_diagnoser_invariants(sc):
+def _run_checked(sc, keys) -> dict:
+    """Diagnose ``sc``'s truth: finite outputs, mode probabilities summing to 1, and a
+    second run bit-identical in ``keys`` (determinism)."""
     setup = setup_scenario(sc)
     truth = simulate_scenario(setup, chunk=CHUNK)
     _, out = filter_measurements(setup, truth["y"], truth["u"], chunk=CHUNK)
@@ -139,6 +139,16 @@ def test_diagnoser_invariants(sc):
     mu = out["mode_probs"]
     assert np.all(mu >= 0)
     np.testing.assert_allclose(mu.sum(axis=1), 1.0, rtol=0, atol=1e-12)
+    _, again = filter_measurements(setup, truth["y"], truth["u"], chunk=CHUNK)
+    for k in keys:
+        np.testing.assert_array_equal(out[k], again[k], err_msg=k)
+    return out
+
+
+@SETTINGS
+@given(diagnoser_variants())
+def test_diagnoser_invariants(sc):
+    out = _run_checked(sc, ("mode_probs", "mean", "declared", "recognised", "health"))
     declared = out["declared"].astype(np.int64)
     # Declared faults are monotone (irreversible) ...
     assert np.all(declared[1:] & declared[:-1] == declared[:-1])
@@ -147,23 +157,13 @@ def test_diagnoser_invariants(sc):
     # ... and a single step declares at most one new fault.
     new = declared[1:] & ~declared[:-1]
     assert np.all((new & (new - 1)) == 0)
-    # Determinism: a second run is bit-identical.
-    _, again = filter_measurements(setup, truth["y"], truth["u"], chunk=CHUNK)
-    for k in ("mode_probs", "mean", "declared", "recognised", "health"):
-        np.testing.assert_array_equal(out[k], again[k], err_msg=k)
 
 
 @settings(SETTINGS, max_examples=8)
 @given(diagnoser_variants(method="uimm-est"))
 def test_size_estimating_diagnoser_invariants(sc):
     """uimm-est: declarations may be retracted, but one fault changes per step at most."""
-    setup = setup_scenario(sc)
-    truth = simulate_scenario(setup, chunk=CHUNK)
-    _, out = filter_measurements(setup, truth["y"], truth["u"], chunk=CHUNK)
-    assert all_finite(out)
-    mu = out["mode_probs"]
-    assert np.all(mu >= 0)
-    np.testing.assert_allclose(mu.sum(axis=1), 1.0, rtol=0, atol=1e-12)
+    out = _run_checked(sc, ("mode_probs", "mean", "declared", "recognised", "magnitude"))
     declared = out["declared"].astype(np.int64)
     change = declared[1:] ^ declared[:-1]
     assert np.all((change & (change - 1)) == 0)
@@ -171,6 +171,3 @@ def test_size_estimating_diagnoser_invariants(sc):
     diff = out["recognised"].astype(np.int64) ^ np.concatenate([[0], declared[:-1]])
     assert np.all((diff & (diff - 1)) == 0)
     assert np.all(out["magnitude_sd"] >= 0)
-    _, again = filter_measurements(setup, truth["y"], truth["u"], chunk=CHUNK)
-    for k in ("mode_probs", "mean", "declared", "recognised", "magnitude"):
-        np.testing.assert_array_equal(out[k], again[k], err_msg=k)

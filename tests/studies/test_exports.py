@@ -91,14 +91,18 @@ def test_decimation_keeps_every_change():
     assert list(rows) == [0, 2, 3, 4, 5, 7, 9, 10]
 
 
+def _cli_out(tmp_path_factory, name: str, sim: int, *flags: str):
+    """``uimm-jax run`` of the short tuned scenario ``sim`` with ``flags``: its out folder."""
+    tmp = tmp_path_factory.mktemp(name)
+    path = write_short(tmp / "short.toml", sim)
+    out = tmp / "out"
+    assert cli.main(["run", str(path), "--quiet", "--no-plots", *flags, "--out", str(out)]) == 0
+    return out
+
+
 @pytest.fixture(scope="module")
 def run_out(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("exports")
-    path = write_short(tmp / "short.toml", 1)
-    out = tmp / "out"
-    args = ["run", str(path), "--quiet", "--no-plots", "--csv", "50", "--out", str(out)]
-    assert cli.main(args) == 0
-    return out
+    return _cli_out(tmp_path_factory, "exports", 1, "--csv", "50")
 
 
 def test_run_writes_timeseries_npz(run_out):
@@ -155,22 +159,13 @@ def _naive_run_rates(z) -> dict:
 
 @pytest.fixture(scope="module")
 def imm_run_out(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("exports_imm")
-    path = write_short(tmp / "short.toml", 2)
-    out = tmp / "out"
-    args = ["run", str(path), "--quiet", "--no-plots", "--method", "imm", "--out", str(out)]
-    assert cli.main(args) == 0  # a warning line: initial_mode_probs adapted for "imm"
-    return out
+    # a warning line: initial_mode_probs adapted for "imm"
+    return _cli_out(tmp_path_factory, "exports_imm", 2, "--method", "imm")
 
 
 @pytest.fixture(scope="module")
 def uimm_run_out(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("exports_uimm")
-    path = write_short(tmp / "short.toml", 1)
-    out = tmp / "out"
-    args = ["run", str(path), "--quiet", "--no-plots", "--method", "uimm", "--out", str(out)]
-    assert cli.main(args) == 0
-    return out
+    return _cli_out(tmp_path_factory, "exports_uimm", 1, "--method", "uimm")
 
 
 @pytest.mark.parametrize("fixture", ["run_out", "uimm_run_out", "imm_run_out"])
