@@ -331,9 +331,9 @@ class UIMMEstDiagnoser(Diagnoser):
         pressure equation's sensitivity to ``a`` falls by 10 per unit of ``a``, so a sample
         taken at ``a_hat`` counts ``10^(2 (a - a_hat))`` times too much information (10x for
         2 declared at 1.5, 300x for 3 at 1.75): the estimate was declared at 1.5-1.8 with
-        sd 0.02-0.03, then crept towards
-        the truth for hundreds of ms, and the bank explained the rest by retracting valve
-        wear or declaring leakage (docs/faults.md, "Sizes").  Raising the variance adds a
+        sd 0.02-0.03, then crept towards the truth for hundreds of ms, and the bank
+        explained the rest by retracting valve wear or declaring leakage (docs/faults.md,
+        "Sizes").  Raising the variance adds a
         PSD matrix (the covariance stays PSD) and leaves the means (and the cache) alone.
         """
         n, s = self.dyn.n, self.settings
