@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from uimm_jax.engine.metrics import new_declarations
-from uimm_jax.engine.scan import scan_chunked, truth_sample, truth_scan
+from uimm_jax.engine.scan import scan_chunked, truth_scan
 from uimm_jax.engine.truth import NEVER, TruthPlan, run_keys
 from uimm_jax.engine.uimm import DiagParams, DiagState
 from uimm_jax.studies.run import setup_scenario
@@ -277,21 +277,6 @@ def _lse_excluding(log_mu: jax.Array, j: int) -> jax.Array:
     return jnp.log(sum(jnp.exp(o - mx) for o in others)) + mx
 
 
-def _truth(problem: Problem, batch: TrainingBatch, x: jax.Array, k: jax.Array):
-    """Input and truth step ``k`` of every run: ``(u (p, B), x_next, y, code)``."""
-    u, x, y, code = truth_sample(
-        problem.diagnoser.dyn,
-        problem.dt,
-        problem.input_dim,
-        batch.plan,
-        batch.signal,
-        batch.keys,
-        x,
-        k,
-    )
-    return jnp.full((problem.input_dim,) + x.shape[1:], u, x.dtype), x, y, code
-
-
 def _step(problem: Problem, config: TuneConfig, c: Constrained, params, carry, k, u, y, code):
     """One step of the hard diagnoser, the decision surrogate and the loss accumulators."""
     diag = problem.diagnoser
@@ -434,26 +419,16 @@ def precompute_truth(problem: Problem, batch: TrainingBatch, *, chunk: int = 50_
     n = batch.init.imm.mean.shape[0]
     B = batch.keys.shape[0]
     dtype = batch.init.imm.mean.dtype
-    fn = _truth_scan(problem)
-    _, (u, y, code) = scan_chunked(
-        lambda x, k0, ks: fn(batch, x, ks),
-        jnp.zeros((n, B), dtype),
-        problem.num_steps,
-        chunk=chunk,
-    )
+    dyn, dt, p = problem.diagnoser.dyn, problem.dt, problem.input_dim
+    fn = jax.jit(lambda b, x, ks: truth_scan(dyn, dt, p, b.plan, b.signal, b.keys, x, ks))
+
+    def chunk_fn(x, k0, ks):  # the chunk's truth (engine.scan), inputs on every channel
+        x, (u, _, y, code) = fn(batch, x, ks)
+        return x, (jnp.broadcast_to(u[:, None, None], (u.shape[0], p, B)), y, code)
+
+    x0 = jnp.zeros((n, B), dtype)
+    _, (u, y, code) = scan_chunked(chunk_fn, x0, problem.num_steps, chunk=chunk)
     return batch._replace(data=Observed(jnp.asarray(u), jnp.asarray(y), jnp.asarray(code)))
-
-
-def _truth_scan(problem: Problem):
-    @jax.jit
-    def fn(batch, x, ks):
-        def body(xc, k):
-            u, xn, y, code = _truth(problem, batch, xc, k)
-            return xn, (u, y, code)
-
-        return jax.lax.scan(body, x, ks)
-
-    return fn
 
 
 def loss_and_parts(
