@@ -297,8 +297,8 @@ def imm_filter(
         return_model_means: also return the per-model posterior means.
         return_cov: return the combined covariance (eq. 31); ``False`` leaves ``cov``
             ``None`` and skips its arithmetic and its ``n * n`` floats per step, the rest
-            unchanged (bit for bit): 1.2x instead of 1.4x the engine issue's reference
-            step on the actuator bank at 1e6 steps (``benchmarks/README.md``).
+            unchanged (bit for bit): 1.25-1.31x instead of 1.40-1.45x the engine issue's
+            reference step on the actuator bank at 1e6 steps (``benchmarks/README.md``).
 
     Returns:
         An :class:`IMMResult`.
