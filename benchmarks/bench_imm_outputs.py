@@ -21,8 +21,14 @@ and, for each, the minor page faults per step (``getrusage``: the kernel mapping
 output pages, counted in process time).  The first minus the second row is what the
 output arithmetic costs, the second minus the third what the output bytes cost.
 
+``--leave-one-out`` times instead imm_filter's own scan with all its outputs, then without
+one of them at a time (``mode_probs`` is the ``exp`` after the scan), and the public call
+with ``return_cov=False``, with user and system time apart: what each output costs where
+all the others are kept.
+
     python benchmarks/bench_imm_outputs.py                 # 1e6 steps, 7 repeats; ~2 min
     python benchmarks/bench_imm_outputs.py --steps 200000 --repeat 3
+    python benchmarks/bench_imm_outputs.py --leave-one-out --repeat 11   # ~4 min
 """
 
 from __future__ import annotations
@@ -75,12 +81,49 @@ def _steps_scan(placeholders: bool):
     return jax.jit(run, static_argnums=(0, 6))
 
 
+_OUTPUTS = ("log_mode_probs", "mean", "cov", "model_loglik", "loglik_increment", "health")
+
+
+def _kept_scan(kept: tuple[str, ...], post_exp: bool):
+    """imm_filter's scan keeping the named :class:`StepInfo` fields (+ ``exp`` after it)."""
+
+    def run(dyn, cache, params, state0, us, ys, gate):
+        state0, us, ys = as_batch_of_one((state0, us, ys))
+
+        def body(state, uy):
+            new, info = imm_step(
+                dyn, state, cache, params, uy[0], uy[1], gate=gate, with_cov="cov" in kept
+            )
+            return new, tuple(getattr(info, k) for k in kept)
+
+        _, out = jax.lax.scan(body, state0, (us, ys))
+        out = drop_batch_of_one(out)
+        return ((jnp.exp(out[0]),) if post_exp else ()) + out
+
+    return jax.jit(run, static_argnums=(0, 6))
+
+
+def _leave_one_out(prep, public, public_no_cov) -> dict:
+    variants = {
+        "all outputs (imm_filter's scan)": (_kept_scan(_OUTPUTS, True), prep),
+        "without mode_probs (the exp after the scan)": (_kept_scan(_OUTPUTS, False), prep),
+    }
+    for name in _OUTPUTS[1:]:
+        kept = tuple(k for k in _OUTPUTS if k != name)
+        variants[f"without {name}"] = (_kept_scan(kept, True), prep)
+    variants["log_mode_probs and mean only"] = (_kept_scan(_OUTPUTS[:2], False), prep)
+    variants["imm_filter"] = (public, ())
+    variants["imm_filter(return_cov=False)"] = (public_no_cov, ())
+    return variants
+
+
 def _timed(fn, args):
-    r0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    r0 = resource.getrusage(resource.RUSAGE_SELF)
     t = time.process_time()
     jax.block_until_ready(fn(*args))
     dt = time.process_time() - t
-    return dt, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - r0
+    r1 = resource.getrusage(resource.RUSAGE_SELF)
+    return dt, r1.ru_minflt - r0.ru_minflt, r1.ru_stime - r0.ru_stime
 
 
 def main(argv=None):
@@ -88,6 +131,7 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=1_000_000)
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--reference", type=Path, default=REPO.parent / "shared" / "perf")
+    ap.add_argument("--leave-one-out", action="store_true", help="see the module docstring")
     args = ap.parse_args(argv)
     ref = _load_reference(args.reference)
     sc = uimm_jax.load_scenario(REPO / "scenarios" / "paper_sim1_tuned.toml")
@@ -105,31 +149,48 @@ def main(argv=None):
         yf,
         kw["gate"],
     )
+    public = lambda: uimm_jax.imm_filter(bank, inputs=uf, measurements=yf, **kw)  # noqa: E731
     variants = {
         "reference": (_reference_scan(ref), (ref.init(1), jnp.asarray(u), jnp.asarray(y))),
-        "imm_filter": (lambda: uimm_jax.imm_filter(bank, inputs=uf, measurements=yf, **kw), ()),
-        "steps, 56 B out": (_steps_scan(False), prep),
-        "steps, 204 B out (placeholders)": (_steps_scan(True), prep),
     }
+    if args.leave_one_out:
+        no_cov = lambda: uimm_jax.imm_filter(  # noqa: E731
+            bank, inputs=uf, measurements=yf, return_cov=False, **kw
+        )
+        variants.update(_leave_one_out(prep, public, no_cov))
+    else:
+        variants.update(
+            {
+                "imm_filter": (public, ()),
+                "steps, 56 B out": (_steps_scan(False), prep),
+                "steps, 204 B out (placeholders)": (_steps_scan(True), prep),
+            }
+        )
     for fn, a in variants.values():  # compile
         _timed(fn, a)
     times = {k: [] for k in variants}
     faults = {k: [] for k in variants}
+    system = {k: [] for k in variants}
     for _ in range(args.repeat):
         for k, (fn, a) in variants.items():
-            dt, nf = _timed(fn, a)
+            dt, nf, st = _timed(fn, a)
             times[k].append(dt)
             faults[k].append(nf)
+            system[k].append(st)
     N = args.steps
     base = np.median(times["reference"])
     load = Path("/proc/loadavg").read_text()[:14]
     print(f"\n{N} steps, {args.repeat} repeats, load average {load}")
-    print("| variant | us per step | ratio to the reference | page faults per step (bytes) |")
-    print("|---|---:|---:|---:|")
+    print(
+        "| variant | us per step | ratio to the reference | of it system us "
+        "| page faults per step (bytes) |"
+    )
+    print("|---|---:|---:|---:|---:|")
     for k in variants:
         med = np.median(times[k])
         pf = 4096 * np.median(faults[k]) / N
-        print(f"| {k} | {1e6 * med / N:.3f} | {med / base:.2f} | {pf:.0f} |")
+        st = 1e6 * np.median(system[k]) / N
+        print(f"| {k} | {1e6 * med / N:.3f} | {med / base:.2f} | {st:.3f} | {pf:.0f} |")
 
 
 if __name__ == "__main__":

@@ -10,7 +10,8 @@ at 30 s and leakage at 60 s when the run is 1e6 samples long) this script times:
 * ``engine``: the scenario's UIMM diagnoser (``Diagnoser.step``) in a ``lax.scan``, with
   the same outputs kept per step (mode probabilities, recognised set, health);
 * ``imm_filter``: the public :func:`uimm_jax.imm_filter` on the same 4-model bank (nothing
-  declared), with the same transition matrix and gate (one run only);
+  declared), with the same transition matrix and gate (one run only), and the same with
+  ``return_cov=False`` (no combined covariance; every other output the same);
 
 for one run of ``--steps`` samples and for ``--batch`` runs of ``--batch-steps`` samples,
 then ``imm_filter`` on random stable banks of M = 4, 8, 16, 32 models (n = m = 3) with the
@@ -131,6 +132,10 @@ def _imm_filter_call(bank, u, y, kw):
     return uimm_jax.imm_filter(bank, inputs=u, measurements=y, **kw).mode_probs
 
 
+def _imm_filter_no_cov_call(bank, u, y, kw):
+    return uimm_jax.imm_filter(bank, inputs=u, measurements=y, return_cov=False, **kw).mode_probs
+
+
 def _random_bank(M: int, rng) -> tuple:
     """A stable random bank of M models (n = m = 3, p = 1) and imm_filter kwargs."""
     n = 3
@@ -183,6 +188,10 @@ def main(argv=None):
             bank, kw = _bank(s)
             uf, yf = u[:, None], y[:, :, 0]
             variants["imm_filter"] = (_imm_filter_call, (bank, uf, yf, kw))
+            variants["imm_filter (return_cov=False)"] = (
+                _imm_filter_no_cov_call,
+                (bank, uf, yf, kw),
+            )
         first, outs, times = _interleave(variants, args.repeat)
         base = np.median(times["reference"])
         for k in variants:

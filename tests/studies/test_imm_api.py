@@ -133,6 +133,23 @@ def test_output_shapes():
         assert value.dtype == np.float64, key
 
 
+@pytest.mark.parametrize("gate", [None, 9.0])
+def test_without_cov_the_other_outputs_are_unchanged(gate):
+    """``return_cov=False`` drops the combined covariance and nothing else, bit for bit."""
+    problem = with_missing(make_linear_problem(4, M=3, n=3, m=2, p=1, N=200), [5, 6], channel=1)
+    bank = uimm_jax.LinearGaussianBank(
+        problem["A"], problem["B"], problem["C"], problem["Q"], problem["R"]
+    )
+    args = (bank, problem["transition"], problem["mu0"], problem["x0"], problem["P0"])
+    data = (problem["inputs"], problem["measurements"])
+    full = uimm_jax.imm_filter(*args, *data, gate=gate, return_model_means=True)
+    lean = uimm_jax.imm_filter(*args, *data, gate=gate, return_model_means=True, return_cov=False)
+    assert lean.cov is None and full.cov.shape == (200, 3, 3)
+    for key in full._fields:
+        if key != "cov":
+            np.testing.assert_array_equal(getattr(lean, key), getattr(full, key), err_msg=key)
+
+
 def test_shared_initial_mean_and_cov_broadcast():
     problem = make_linear_problem(8)
     M = problem["A"].shape[0]
