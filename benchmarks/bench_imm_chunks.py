@@ -26,11 +26,15 @@ with its system part apart, median:
 * ``... results in 4 KB pages``: the result arrays in a fresh anonymous ``mmap`` instead
   of ``np.empty`` (which asks for transparent huge pages on arrays of 4 MB and more).
 
+``--memory MB`` times instead what writing MB of fresh memory costs by where it comes from
+(``np.empty``, with NumPy's huge pages on and off, a fresh ``mmap``, XLA, a reused array).
+
 Every chunked output is checked bit for bit against ``imm_filter``'s, also with missing
 measurements (rows and single channels).
 
     python benchmarks/bench_imm_chunks.py                  # 1e6 steps, 5 repeats; ~4 min
     python benchmarks/bench_imm_chunks.py --chunk 4096 --repeat 7
+    python benchmarks/bench_imm_chunks.py --memory 200 --repeat 9
 """
 
 from __future__ import annotations
@@ -159,6 +163,49 @@ class _Chunked:
         return tuple(jax.device_put(r) for r in results)
 
 
+def _memory(megabytes: int, repeat: int) -> None:
+    """System time and faults of writing ``megabytes`` of fresh memory, by allocator."""
+    from numpy._core.multiarray import _set_madvise_hugepage  # NumPy's own switch
+
+    size = megabytes * 2**20 // 8
+    src = np.ones(size)
+    kept = np.zeros(size)
+
+    def numpy_empty(hugepages=True):
+        previous = _set_madvise_hugepage(hugepages)
+        try:
+            a = np.empty(size)
+        finally:
+            _set_madvise_hugepage(previous)
+        np.copyto(a, src)
+        return a
+
+    def fresh_mmap():
+        a = np.frombuffer(mmap.mmap(-1, size * 8), np.float64)
+        np.copyto(a, src)
+        return a
+
+    variants = {
+        "np.empty (NumPy asks for huge pages)": numpy_empty,
+        "np.empty, NumPy's huge pages off": functools.partial(numpy_empty, False),
+        "a fresh anonymous mmap (4 KB pages)": fresh_mmap,
+        "XLA: jnp.zeros(...) + 1": lambda: jnp.zeros(size) + 1.0,
+        "an array reused (faulted in before)": lambda: np.copyto(kept, src),
+    }
+    rows = {k: [] for k in variants}
+    for _ in range(repeat):
+        for k, f in variants.items():
+            rows[k].append(_timed(f)[:3])
+    thp = Path("/sys/kernel/mm/transparent_hugepage/enabled")
+    mode = thp.read_text().strip() if thp.exists() else "unknown"
+    print(f"\n{megabytes} MB written, {repeat} repeats, transparent huge pages: {mode}")
+    print("| memory | ms | of it system ms | page faults |")
+    print("|---|---:|---:|---:|")
+    for k, r in rows.items():
+        t, st, pf = np.median(np.asarray(r), axis=0)
+        print(f"| {k} | {1e3 * t:.1f} | {1e3 * st:.1f} | {pf:.0f} |")
+
+
 def _timed(fn):
     r0 = resource.getrusage(resource.RUSAGE_SELF)
     t = time.process_time()
@@ -174,7 +221,10 @@ def main(argv=None):
     ap.add_argument("--chunk", type=int, default=16384, help="steps per chunk (about)")
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--reference", type=Path, default=REPO.parent / "shared" / "perf")
+    ap.add_argument("--memory", type=int, default=0, metavar="MB", help="see the docstring")
     args = ap.parse_args(argv)
+    if args.memory:
+        return _memory(args.memory, args.repeat)
     ref = _load_reference(args.reference)
     u, y, bank, kw = actuator_problem(args.steps)
     uf, yf = u[:, None], y[:, :, 0]
