@@ -117,6 +117,15 @@ def _leave_one_out(prep, public, public_no_cov) -> dict:
     return variants
 
 
+def actuator_problem(steps: int):
+    """``(u (N,), y (N, 3, 1), bank, kw)``: one run of ``paper_sim1_tuned``'s truth (the
+    paper's UIMM, not -est) and its 4-model bank with imm_filter's keyword arguments."""
+    sc = uimm_jax.load_scenario(REPO / "scenarios" / "paper_sim1_tuned.toml")
+    sc = dataclasses.replace(sc, filter=dataclasses.replace(sc.filter, method="uimm"))
+    u, y, s = _truth(runner.setup_scenario(sc), steps, 1)
+    return (u, y) + _bank(s)
+
+
 def _timed(fn, args):
     r0 = resource.getrusage(resource.RUSAGE_SELF)
     t = time.process_time()
@@ -134,10 +143,7 @@ def main(argv=None):
     ap.add_argument("--leave-one-out", action="store_true", help="see the module docstring")
     args = ap.parse_args(argv)
     ref = _load_reference(args.reference)
-    sc = uimm_jax.load_scenario(REPO / "scenarios" / "paper_sim1_tuned.toml")
-    sc = dataclasses.replace(sc, filter=dataclasses.replace(sc.filter, method="uimm"))  # not -est
-    u, y, s = _truth(runner.setup_scenario(sc), args.steps, 1)
-    bank, kw = _bank(s)
+    u, y, bank, kw = actuator_problem(args.steps)
     uf, yf = u[:, None], y[:, :, 0]
     prep = _prepare(
         bank,
