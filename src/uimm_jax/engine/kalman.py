@@ -240,9 +240,16 @@ def _update_backward(res: _Residuals, ct: UpdateResult, H, R, shapes):
     A gated filter has ``K = 0`` and no likelihood term; a missing channel's rows of
     ``S_bar`` and ``H_bar`` are zero.  Where pivots of ``S`` were floored (``repaired``)
     this is the gradient of the update with the repaired ``S`` (the floor's increment
-    taken as a constant).  Block products only, no ``lax.cond``: with it (and
+    taken as a constant).  Block products only: with it (and
     :func:`uimm_jax.engine._block.mirror_lower`'s) the tuning gradient of paper simulation
     1 (1e5 samples, truth precomputed) went from 6.4x to 3.6x the loss's forward time.
+
+    The covariance's ``K_bar`` term ``2 G (K S - P H')`` vanishes for the exact gain and
+    is computed, under a ``lax.cond``, only for the filters whose forward pass took the
+    Joseph form (there it cancels the rounding of ``I - K H`` to first order, or carries
+    the repaired ``S``); the rest of ``K_bar`` is the rank-one ``x_bar e'``, whose products
+    are outer products of vectors.  With ``C = I`` this halved the adjoint's block
+    products (tuning gradient -2 to -4 %, ``benchmarks/README.md``).
     """
     P, _, Linv, W, e, valid, keep, _, joseph = res
     n = P.shape[0]
