@@ -1,10 +1,12 @@
 """Reverse mode of the engine's hand-written adjoints against textbook references.
 
-The measurement update (:func:`uimm_jax.engine.kalman.kf_update`) and
-:func:`uimm_jax.engine._block.mirror_lower` carry their own ``custom_vjp``; here their
+The measurement update (:func:`uimm_jax.engine.kalman.kf_update`), the mixing
+(:func:`uimm_jax.engine.imm.mix`) and :func:`uimm_jax.engine._block.mirror_lower` carry
+their own ``custom_vjp``; here their
 gradients are compared with JAX's reverse mode through plain formulas: the Kalman update
 written with ``jnp.linalg.solve`` and ``slogdet`` (Joseph form, missing channels and gate
-as the engine documents them), and the mirror as ``tril`` plus a transpose.
+as the engine documents them), the mixing as its own forward formulas, and the mirror
+as ``tril`` plus a transpose.
 """
 
 import jax
@@ -147,6 +149,45 @@ def test_covariance_gradient_is_accurate_when_the_update_removes_nearly_all_vari
     gp, gr = jax.grad(posterior_variance, (0, 1))(p, r)
     np.testing.assert_allclose(np.asarray(gp), (r / (p + r)) ** 2, rtol=1e-5)
     np.testing.assert_allclose(np.asarray(gr), (p / (p + r)) ** 2, rtol=1e-12)
+
+
+@pytest.mark.parametrize("per_run", [False, True])
+def test_mixing_gradient_equals_reverse_mode_through_its_formulas(per_run):
+    # An impossible model (log mu = -inf), a model no other can reach in one run
+    # (c_j = 0: it keeps its own estimate) and transitions shared or per run.
+    rng = np.random.default_rng(3)
+    n, M, B = 3, 4, 2
+    mean = rng.normal(size=(n, M, B))
+    cov = _spd(rng, n, (M, B))
+    log_mu = np.log(rng.dirichlet(np.ones(M), size=B).T)
+    log_mu[2, 1] = -np.inf
+    log_mu[3] = -np.inf
+    P = rng.dirichlet(np.ones(M), size=M)
+    P[:, 3] = 0.0
+    P[3] = [0.0, 0.0, 0.0, 1.0]  # model 3 is reached only from itself
+    with np.errstate(divide="ignore"):
+        log_t = np.log(P)
+    if per_run:
+        log_t = np.stack([log_t, np.log(rng.dirichlet(np.ones(M), size=M))], axis=-1)
+    weights = [rng.normal(size=s) for s in [(n, M, B), (n, n, M, B), (M, B)]]
+
+    def total(mix, *args):
+        x0, P0, log_c = mix(*args)
+        log_c = jnp.where(jnp.isfinite(log_c), log_c, 0.0)
+        return sum(jnp.sum(w * o) for w, o in zip(weights, (x0, P0, log_c), strict=True))
+
+    def formulas(mean, cov, log_mu, log_t):
+        trans = bk.align(jnp.exp(log_t), 2, log_mu.ndim - 1)
+        return imm._mix_pairwise_fwd(mean, cov, log_mu, trans)[0]
+
+    args = (mean, cov, log_mu, log_t)
+    assert not np.all(np.isfinite(np.asarray(imm.mix(*args)[2])))  # c_j = 0 was reached
+    g_hand = jax.grad(lambda *a: total(imm.mix, *a), (0, 1, 2, 3))(*args)
+    g_ref = jax.grad(lambda *a: total(formulas, *a), (0, 1, 2, 3))(*args)
+    for a, b in zip(g_hand, g_ref, strict=True):
+        a, b = np.asarray(a), np.asarray(b)
+        assert np.all(np.isfinite(a))
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14 * np.max(np.abs(b)))
 
 
 def test_mirror_lower_gradient_equals_that_of_tril_plus_transpose():

@@ -141,9 +141,20 @@ def mix(mean: jax.Array, cov: jax.Array, log_mu: jax.Array, log_trans: jax.Array
     # c_j = s sum_i p_ij exp(log mu_i - s), one shift s = max_i log mu_i for every j
     # (M exponentials, not M^2).  The largest term exp(log mu_i - s) is 1, so c_j
     # underflows only if every p_ij mu_i / mu_max does, i.e. below 1e-308.
+    return _mix_pairwise(mean, cov, log_mu, trans)
+
+
+@jax.custom_vjp
+def _mix_pairwise(mean, cov, log_mu, trans):
+    """Eqs. (15)-(17) with per-pair spreads (:func:`mix`); reverse mode by hand."""
+    return _mix_pairwise_fwd(mean, cov, log_mu, trans)[0]
+
+
+def _mix_pairwise_fwd(mean, cov, log_mu, trans):
     top = jnp.max(log_mu, axis=0, keepdims=True)
     shift = jnp.where(jnp.isfinite(top), top, 0.0)
-    t = trans * jnp.exp(log_mu - shift)[:, None]  # (Mi, Mj, *runs)
+    e = jnp.exp(log_mu - shift)
+    t = trans * e[:, None]  # (Mi, Mj, *runs)
     c = jnp.sum(t, axis=0)
     ok = c > 0
     w = t * (1.0 / jnp.where(ok, c, 1.0))  # a zero column where c_j = 0
@@ -156,7 +167,48 @@ def mix(mean: jax.Array, cov: jax.Array, log_mu: jax.Array, log_trans: jax.Array
     # A model no other can reach (c_j = 0) keeps its own estimate.  Selecting here, on
     # the mixed estimates, keeps the pairwise sums free of selects (measured 25% of a
     # step at 64 runs when the fallback sat in the weights).
-    return jnp.where(ok, x0, mean), jnp.where(ok, P0, cov), log_c
+    out = (jnp.where(ok, x0, mean), jnp.where(ok, P0, cov), log_c)
+    return out, (mean, cov, trans, e, c, w, x0)
+
+
+def _mix_pairwise_bwd(res, ct):
+    """Reverse mode of the pairwise mixing, from its differentials.
+
+    With ``d_ij = x_i - x0_j`` and the cotangents ``G_j`` of ``P0_j``, ``g_j`` of
+    ``x0_j`` and ``l_j`` of ``log c_j``: ``P_i`` gets ``sum_j w_ij G_j``; ``x_i`` gets
+    ``sum_j w_ij ((G_j + G_j') d_ij + g_j)``; ``w_ij`` gets ``<G_j, P_i> + d_ij' G_j d_ij
+    + g_j' x_i``.  ``P0_j`` is stationary in ``x0_j`` (``sum_i w_ij d_ij = 0``), so the
+    spread passes nothing through ``x0``.  Then ``w = t / c`` and ``log c = log(sum_i
+    t_ij) + s`` give ``t_bar_ij = (w_bar_ij - sum_k w_kj w_bar_kj + l_j) / c_j``, and
+    ``t_ij = p_ij exp(log mu_i - s)`` (the shift ``s`` cancels) the transition and mode
+    probability cotangents.  No pairwise residual is stored: the pairwise terms are
+    formed again here from the inputs, ``w`` and ``x0``.
+    """
+    mean, cov, trans, e, c, w, x0 = res
+    g_x, g_P, g_lc = ct
+    ok = c > 0
+    g_x0 = jnp.where(ok, g_x, 0.0)
+    g_P0 = jnp.where(ok, g_P, 0.0)
+    d = mean[:, :, None] - x0[:, None]  # (n, Mi, Mj, *runs)
+    gs = g_P0 + jnp.swapaxes(g_P0, 0, 1)
+    gd = jnp.sum(gs[:, :, None] * d[None], axis=1)  # (G_j + G_j') d_ij, (n, Mi, Mj, *runs)
+    g_w = (
+        jnp.sum(g_P0[:, :, None] * cov[:, :, :, None], axis=(0, 1))
+        + 0.5 * jnp.sum(d * gd, axis=0)
+        + jnp.sum(g_x0[:, None] * mean[:, :, None], axis=0)
+    )
+    g_mean = jnp.where(ok, 0.0, g_x) + jnp.sum(w * (gd + g_x0[:, None]), axis=2)
+    g_cov = jnp.where(ok, 0.0, g_P) + jnp.sum(w * g_P0[:, :, None], axis=3)
+    inv_c = 1.0 / jnp.where(ok, c, 1.0)
+    g_t = (g_w - jnp.sum(w * g_w, axis=0) + jnp.where(ok, g_lc, 0.0)) * inv_c
+    g_trans = g_t * e[:, None]
+    axes = tuple(i for i in range(2, g_trans.ndim) if trans.shape[i] == 1 != g_trans.shape[i])
+    g_trans = jnp.sum(g_trans, axis=axes, keepdims=True) if axes else g_trans
+    g_log_mu = jnp.sum(g_t * trans, axis=1) * e
+    return g_mean, g_cov, g_log_mu, g_trans
+
+
+_mix_pairwise.defvjp(_mix_pairwise_fwd, _mix_pairwise_bwd)
 
 
 def _mix_large(mean, cov, log_mu, log_trans, eye):

@@ -151,6 +151,7 @@ class _Residuals(NamedTuple):
     valid: jax.Array
     keep: jax.Array | None
     R: jax.Array
+    joseph: jax.Array
 
 
 def _update_forward(x, P, y, y_pred, H, R, floor, accept, accept_args):
@@ -207,7 +208,7 @@ def _update_forward(x, P, y, y_pred, H, R, floor, accept, accept_args):
     # reference step at one run, 1.66x against 1.28x at 64.
     P_new = jax.lax.cond(jnp.any(use_joseph), per_filter, standard, None)
     out = UpdateResult(x_new, P_new, loglik, nis, repaired, num_obs, keep)
-    return out, _Residuals(P, None if const_H else H, Linv, W, e, valid, keep, R)
+    return out, _Residuals(P, None if const_H else H, Linv, W, e, valid, keep, R, use_joseph)
 
 
 def _sum_to(g: jax.Array, shape: tuple) -> jax.Array:
@@ -239,41 +240,69 @@ def _update_backward(res: _Residuals, ct: UpdateResult, H, R, shapes):
     A gated filter has ``K = 0`` and no likelihood term; a missing channel's rows of
     ``S_bar`` and ``H_bar`` are zero.  Where pivots of ``S`` were floored (``repaired``)
     this is the gradient of the update with the repaired ``S`` (the floor's increment
-    taken as a constant).  Block products only, no ``lax.cond``: with it (and
+    taken as a constant).  Block products only: with it (and
     :func:`uimm_jax.engine._block.mirror_lower`'s) the tuning gradient of paper simulation
     1 (1e5 samples, truth precomputed) went from 6.4x to 3.6x the loss's forward time.
+
+    The covariance's ``K_bar`` term ``2 G (K S - P H')`` vanishes for the exact gain and
+    is computed, under a ``lax.cond``, only for the filters whose forward pass took the
+    Joseph form (there it cancels the rounding of ``I - K H`` to first order, or carries
+    the repaired ``S``); the rest of ``K_bar`` is the rank-one ``x_bar e'``, whose products
+    are outer products of vectors.  With ``C = I`` this halved the adjoint's block
+    products (tuning gradient -2 to -4 %, ``benchmarks/README.md``).
     """
-    P, _, Linv, W, e, valid, keep, _ = res
+    P, _, Linv, W, e, valid, keep, _, joseph = res
     n = P.shape[0]
     G = bk.sym(ct.cov)
     g_ll = ct.loglik if keep is None else jnp.where(keep, ct.loglik, 0.0)
     g_nis = ct.nis - 0.5 * g_ll
     K = bk.mm(W, Linv)  # P H' S^-1 (zero where gated)
     Sinv = bk.mtm(Linv, Linv)
-    a = bk.mv(Sinv, e)
+    a = bk.mv(Sinv, e)  # zero on a missing channel (e is, and S's row is the identity's)
     eye_n = np.eye(n).reshape((n, n) + (1,) * (P.ndim - 2)).astype(P.dtype)
     A = eye_n - bk.mm(K, H)
     GA = bk.mm(G, A)
-    # K_bar: from the mean, and from the covariance at the gain actually computed
-    # (2 G (K S - P H'), zero for the exact gain: it keeps the Joseph form's second-order
-    # accuracy when K carries rounding errors, as when the update removes nearly all of
-    # a variance).
-    Kbar = ct.mean[:, None] * e[None] + 2.0 * (bk.mm(bk.mm(G, K), R) - bk.mmt(bk.mm(GA, P), H))
-    Kbar = jnp.where(valid[None, :], Kbar, 0.0)  # K has no column for a missing channel
-    if keep is not None:
-        Kbar = jnp.where(keep, Kbar, 0.0)
-    g_e = jnp.sum(K * ct.mean[:, None], axis=0) + (2.0 * g_nis) * a
-    S_bar = bk.mm(bk.mtm(K, Kbar), Sinv) + g_nis * (a[:, None] * a[None]) + (0.5 * g_ll) * Sinv
-    S_bar = jnp.where(valid[:, None] & valid[None, :], -bk.sym(S_bar), 0.0)
-    KbSi = bk.mm(Kbar, Sinv)
-    g_P = bk.mtm(A, GA) + bk.mtm(H, bk.mm(S_bar, H)) + bk.mm(KbSi, H)
+    vvalid = valid[:, None] & valid[None, :]
+    # K_bar = x_bar e' from the mean: rank one, so its products with K and S^-1 are
+    # outer products of vectors (K' K_bar S^-1 = (K' x_bar) a', K_bar S^-1 = x_bar a').
+    xb = ct.mean if keep is None else jnp.where(keep, ct.mean, 0.0)
+    Ktx = jnp.sum(K * xb[:, None], axis=0)  # K' x_bar, (m, *batch)
+    g_e = Ktx + (2.0 * g_nis) * a
+    S_bar = Ktx[:, None] * a[None] + g_nis * (a[:, None] * a[None]) + (0.5 * g_ll) * Sinv
+    S_bar = jnp.where(vvalid, -bk.sym(S_bar), 0.0)
+    Hta = a if bk.is_identity(H) else jnp.sum(bk.align(H, 2, a.ndim - 1) * a[:, None], axis=0)
+    g_P = bk.mtm(A, GA) + bk.mtm(H, bk.mm(S_bar, H)) + xb[:, None] * Hta[None]
     g_R = bk.mtm(K, bk.mm(G, K)) + S_bar
     g_e = jnp.where(valid, g_e, 0.0)
     x_s, P_s, y_s, yp_s, H_s, R_s = shapes
     g_H = None
     if H_s is not None:
-        g_H = bk.mm(2.0 * bk.mm(S_bar, H) + jnp.swapaxes(KbSi, 0, 1) - 2.0 * bk.mtm(K, GA), P)
-        g_H = _sum_to(jnp.where(valid[:, None], g_H, 0.0), H_s)
+        g_H = 2.0 * bk.mm(S_bar, H) + a[:, None] * xb[None] - 2.0 * bk.mtm(K, GA)
+    # The covariance's gain term 2 G (K S - P H'), zero for the exact gain: where the
+    # forward pass took the Joseph form (S repaired, or the update removing nearly all of
+    # a variance, where 1 - K H carries rounding errors ~eps P / R) it is kept, per filter
+    # and under a lax.cond taken only on the steps where some filter needs it; elsewhere it
+    # is rounding noise against A' G A (every variance keeps >= 1% of its prior).
+    mask = joseph & (True if keep is None else keep)
+
+    def gain_term(_):
+        Kc = 2.0 * (bk.mm(bk.mm(G, K), R) - bk.mmt(bk.mm(GA, P), H))
+        Kc = jnp.where(valid[None, :] & mask, Kc, 0.0)  # K has no column for a missing channel
+        KcSi = bk.mm(Kc, Sinv)
+        Sc = jnp.where(vvalid, -bk.sym(bk.mtm(K, KcSi)), 0.0)
+        dP = bk.mtm(H, bk.mm(Sc, H)) + bk.mm(KcSi, H)
+        dH = None if H_s is None else 2.0 * bk.mm(Sc, H) + jnp.swapaxes(KcSi, 0, 1)
+        return dP, Sc, dH
+
+    def no_gain_term(_):
+        dH = None if H_s is None else jnp.zeros_like(g_H)
+        return jnp.zeros_like(g_P), jnp.zeros_like(g_R), dH
+
+    dP, dR, dH = jax.lax.cond(jnp.any(mask), gain_term, no_gain_term, None)
+    g_P = g_P + dP
+    g_R = g_R + dR
+    if H_s is not None:
+        g_H = _sum_to(jnp.where(valid[:, None], bk.mm(g_H + dH, P), 0.0), H_s)
     return (
         _sum_to(ct.mean, x_s),
         _sum_to(g_P, P_s),

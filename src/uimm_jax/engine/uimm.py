@@ -306,31 +306,68 @@ class UIMMDiagnoser(Diagnoser):
     def _after_decision(self, imm_state, cache, cand, declare_now, new_declared):
         """UIMM hand-over and masked re-parameterisation on declaration (module doc).
 
-        Everything happens inside one ``lax.cond`` taken only on steps where some run
-        declares, so the other steps pay nothing for it.
+        Everything happens inside ``lax.cond`` taken only on steps where some run
+        declares, so the other steps pay nothing for it.  The hand-over of the estimate
+        and of the mode probabilities has its own reverse mode (:func:`_handover`).
         """
-        dn = declare_now  # (*runs,): broadcasts over the leading axes of every leaf
-        dtype = imm_state.mean.dtype
+        state = _handover(imm_state, cand, declare_now)
 
-        def handover(operand):
-            st, c = operand
-            models = np.arange(self.num_models).reshape((-1,) + (1,) * cand.ndim)
-            onehot = cand == models  # (M, *runs)
-            oh = onehot.astype(dtype)
-            win_mean = jnp.sum(st.mean * oh, axis=1, keepdims=True)
-            win_cov = jnp.sum(st.cov * oh, axis=2, keepdims=True)
-            mean = jnp.where(dn, win_mean, st.mean)
-            cov = jnp.where(dn, win_cov, st.cov)
-            lm = st.log_mode_probs
-            top = jnp.max(lm, axis=0, keepdims=True)
-            moved = jnp.where(models == 0, top, jnp.where(onehot, -jnp.inf, lm))
-            moved, _ = log_normalize(moved)
-            lm = jnp.where(dn, moved, lm)
-            fresh = self._prepare(new_declared, dtype)
-            c = jax.tree.map(lambda new, old: jnp.where(dn, new, old), fresh, c)
-            return IMMState(mean, cov, lm), c
+        def rebuild(c):
+            fresh = self._prepare(new_declared, imm_state.mean.dtype)
+            return jax.tree.map(lambda new, old: jnp.where(declare_now, new, old), fresh, c)
 
-        return jax.lax.cond(jnp.any(declare_now), handover, lambda o: o, (imm_state, cache))
+        cache = jax.lax.cond(jnp.any(declare_now), rebuild, lambda c: c, cache)
+        return state, cache
+
+
+def _handover_step(st: IMMState, cand, dn) -> IMMState:
+    """Runs that declare (``dn``): every model restarts from the winner ``cand``."""
+    M = st.log_mode_probs.shape[0]
+    models = np.arange(M).reshape((-1,) + (1,) * cand.ndim)
+    onehot = cand == models  # (M, *runs)
+    oh = onehot.astype(st.mean.dtype)
+    win_mean = jnp.sum(st.mean * oh, axis=1, keepdims=True)
+    win_cov = jnp.sum(st.cov * oh, axis=2, keepdims=True)
+    mean = jnp.where(dn, win_mean, st.mean)
+    cov = jnp.where(dn, win_cov, st.cov)
+    lm = st.log_mode_probs
+    top = jnp.max(lm, axis=0, keepdims=True)
+    moved = jnp.where(models == 0, top, jnp.where(onehot, -jnp.inf, lm))
+    moved, _ = log_normalize(moved)
+    return IMMState(mean, cov, jnp.where(dn, moved, lm))
+
+
+def _handover_cond(st: IMMState, cand, dn) -> IMMState:
+    return jax.lax.cond(jnp.any(dn), lambda s: _handover_step(s, cand, dn), lambda s: s, st)
+
+
+@jax.custom_vjp
+def _handover(st: IMMState, cand, dn) -> IMMState:
+    """The UIMM hand-over of the estimate (:meth:`UIMMDiagnoser._after_decision`).
+
+    Its reverse mode keeps only the inputs and differentiates the hand-over under a
+    ``lax.cond`` of its own, on the steps where some run declared; on the others the
+    cotangent passes through unchanged.  Reverse mode through the forward ``lax.cond``
+    stored the residuals of both branches every step (20 arrays) and ran a ``lax.cond``
+    on them in the reverse sweep.
+    """
+    return _handover_cond(st, cand, dn)
+
+
+def _handover_fwd(st, cand, dn):
+    return _handover_cond(st, cand, dn), (st, cand, dn)
+
+
+def _handover_bwd(res, ct):
+    st, cand, dn = res
+
+    def through(ct):
+        return jax.vjp(lambda s: _handover_step(s, cand, dn), st)[1](ct)[0]
+
+    return jax.lax.cond(jnp.any(dn), through, lambda ct: ct, ct), None, None
+
+
+_handover.defvjp(_handover_fwd, _handover_bwd)
 
 
 @final
