@@ -18,7 +18,8 @@ Every configuration runs in its own subprocess (fresh XLA, its own peak memory V
 * ``--anatomy``: instead of the table, the fused chunk and its parts at ``--ref-batch``
   runs on one device, interleaved in one process, in CPU seconds per run-step: the truth
   (its noise draw alone, then the whole truth scan), the diagnoser with the metrics, the
-  fused chunk, and the reference step on the same truth.
+  fused chunk (with XLA's defaults, then as the sweep compiles it), and the reference step
+  on the same truth.
 * ``--options``: instead of the table, the sweep's chunk on 2 forced host devices at
   ``--options-batch`` runs, compiled with XLA's defaults and with the sweep's
   ``CHUNK_COMPILER_OPTIONS``, at each of ``--options-chunks`` chunk lengths, interleaved
@@ -182,6 +183,7 @@ def anatomy(B: int, L: int, repeat: int) -> list[tuple[str, float]]:
     from uimm_jax.engine import scan
     from uimm_jax.engine.truth import run_keys, standard_noise
     from uimm_jax.studies import run, sweep
+    from uimm_jax.studies.sweep_batch import CHUNK_COMPILER_OPTIONS
 
     sc = _scenario(L)
     setup = run.setup_scenario(sc, "uimm")
@@ -213,6 +215,13 @@ def anatomy(B: int, L: int, repeat: int) -> list[tuple[str, float]]:
             (plan, keys, carry, ks),
         ),
     }
+    variants["fused chunk, the sweep's compile options"] = (
+        jax.jit(
+            variants["fused chunk (truth + diagnoser + metrics)"][0].__wrapped__,
+            compiler_options=CHUNK_COMPILER_OPTIONS,
+        ),
+        (plan, keys, carry, ks),
+    )
     if (ROOT.parent / "shared" / "perf" / "reference_step.py").exists():
         ref = _load_reference()
         step = ref.make_step()
