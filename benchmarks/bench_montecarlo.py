@@ -18,7 +18,12 @@ Every configuration runs in its own subprocess (fresh XLA, its own peak memory V
 * ``--anatomy``: instead of the table, the fused chunk and its parts at ``--ref-batch``
   runs on one device, interleaved in one process, in CPU seconds per run-step: the truth
   (its noise draw alone, then the whole truth scan), the diagnoser with the metrics, the
-  fused chunk, and the reference step on the same truth.
+  fused chunk (with XLA's defaults, then as the sweep compiles it), and the reference step
+  on the same truth.
+* ``--options``: instead of the table, the sweep's chunk on 2 forced host devices at
+  ``--options-batch`` runs, compiled with XLA's defaults and with the sweep's
+  ``CHUNK_COMPILER_OPTIONS``, at each of ``--options-chunks`` chunk lengths, interleaved
+  in one process: CPU µs per run-step (all threads) and whether every metric is the same.
 
 Compilation is timed apart (first chunk minus a steady chunk).  Each row also gives the
 process's CPU time per run-step, summed over its threads: on a shared machine the wall-time
@@ -30,6 +35,7 @@ quiet 2-core machine::
     python benchmarks/bench_montecarlo.py               # full table
     python benchmarks/bench_montecarlo.py --quick       # a smoke run (~2 min)
     python benchmarks/bench_montecarlo.py --anatomy     # where a run-step's time goes
+    python benchmarks/bench_montecarlo.py --options     # the sweep's compile options
 """
 
 from __future__ import annotations
@@ -177,6 +183,7 @@ def anatomy(B: int, L: int, repeat: int) -> list[tuple[str, float]]:
     from uimm_jax.engine import scan
     from uimm_jax.engine.truth import run_keys, standard_noise
     from uimm_jax.studies import run, sweep
+    from uimm_jax.studies.sweep_batch import CHUNK_COMPILER_OPTIONS
 
     sc = _scenario(L)
     setup = run.setup_scenario(sc, "uimm")
@@ -208,6 +215,13 @@ def anatomy(B: int, L: int, repeat: int) -> list[tuple[str, float]]:
             (plan, keys, carry, ks),
         ),
     }
+    variants["fused chunk, the sweep's compile options"] = (
+        jax.jit(
+            variants["fused chunk (truth + diagnoser + metrics)"][0].__wrapped__,
+            compiler_options=CHUNK_COMPILER_OPTIONS,
+        ),
+        (plan, keys, carry, ks),
+    )
     if (ROOT.parent / "shared" / "perf" / "reference_step.py").exists():
         ref = _load_reference()
         step = ref.make_step()
@@ -224,6 +238,63 @@ def anatomy(B: int, L: int, repeat: int) -> list[tuple[str, float]]:
             jax.block_until_ready(f(*a))
             times[name].append(time.process_time() - t0)
     return [(name, min(t) / (L * B) * 1e6) for name, t in times.items()]
+
+
+def compare_options(B: int, N: int, chunks: list[int], repeat: int) -> list[tuple]:
+    """The sweep's sharded chunk with XLA's defaults and with its options (module doc)."""
+    from uimm_jax.xla_flags import apply_recommended_xla_flags
+
+    apply_recommended_xla_flags()
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import numpy as np
+    from jax.sharding import Mesh
+
+    from uimm_jax.engine.scan import scan_chunked
+    from uimm_jax.engine.truth import run_keys
+    from uimm_jax.studies import run, sweep
+    from uimm_jax.studies import sweep_batch as sb
+
+    sc = _scenario(N)
+    setup = run.setup_scenario(sc, "uimm")
+    mesh = Mesh(np.array(jax.devices()), ("runs",))
+    onset = np.tile(np.array([round(0.3 * N), round(0.6 * N), -1]), (B, 1))
+    plan, keys, carry = sweep.batch_inputs(
+        setup, onset, np.ones(onset.shape), np.ones(B), run_keys(sc.seed, B)[0], 3, jnp.float64
+    )
+    specs = sb._specs(carry, plan, keys)
+    carry, plan, keys = (
+        sb._place(t, sp, mesh) for t, sp in zip((carry, plan, keys), specs, strict=True)
+    )
+    opts = {"XLA defaults": (), "CHUNK_COMPILER_OPTIONS": None}
+    fns = {
+        name: sb._sharded_chunk(setup.diagnoser, float(sc.dt), 1, mesh, *specs, o)
+        for name, o in opts.items()
+    }
+
+    def drive(fn, L):
+        def chunk(c, k0, ks):
+            return fn(setup.params, plan, setup.signal, keys, c, ks), None
+
+        c, _ = scan_chunked(chunk, carry, N, chunk=L, keep_outputs=False)
+        return jax.block_until_ready(c.metrics)
+
+    variants = {(name, L): fn for name, fn in fns.items() for L in chunks}
+    first = None
+    same = {}
+    for v, fn in variants.items():
+        out = jax.tree.leaves(drive(fn, v[1]))  # compiles (the last chunk may differ)
+        first = first or out
+        same[v] = all(np.array_equal(a, b) for a, b in zip(first, out, strict=True))
+    times = {v: [] for v in variants}
+    for _ in range(repeat):
+        for v, fn in variants.items():
+            t0 = time.process_time()
+            drive(fn, v[1])
+            times[v].append((time.process_time() - t0) / (B * N) * 1e6)
+    return [(v[0], v[1], min(t), sorted(t)[len(t) // 2], same[v]) for v, t in times.items()]
 
 
 def _spawn(mode: str, batch: int, steps: int, chunk: int, devices: int, timeout: float) -> dict:
@@ -259,7 +330,9 @@ def _steps_for(batch: int, target: float, chunk: int) -> tuple[int, int]:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--worker", choices=("single", "fused", "reference"), help=argparse.SUPPRESS)
+    p.add_argument(
+        "--worker", choices=("single", "fused", "reference", "options"), help=argparse.SUPPRESS
+    )
     p.add_argument("--batch", type=int, default=1, help=argparse.SUPPRESS)
     p.add_argument("--steps", type=int, default=10_000, help=argparse.SUPPRESS)
     p.add_argument("--check", action="store_true", help=argparse.SUPPRESS)
@@ -285,8 +358,29 @@ def main(argv=None) -> int:
         help="time the fused chunk's parts at --ref-batch runs instead (one device)",
     )
     p.add_argument("--repeat", type=int, default=7, help="repeats of --anatomy (default 7)")
+    p.add_argument(
+        "--options", action="store_true", help="compare the sweep's compile options instead"
+    )
+    p.add_argument("--options-batch", type=int, default=128, help="runs of --options")
+    p.add_argument("--options-steps", type=int, default=30000, help="steps of --options")
+    p.add_argument("--options-chunks", default="5000,15625", help="chunk lengths of --options")
     p.add_argument("--json", help="also write the rows to this JSON file")
     args = p.parse_args(argv)
+    if args.options and not args.worker:
+        env = dict(os.environ, JAX_PLATFORMS="cpu")
+        flags = env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+        env["XLA_FLAGS"] = flags.strip()
+        cmd = [sys.executable, __file__, "--worker", "options", *(argv or sys.argv[1:])]
+        return subprocess.run(cmd, env=env).returncode
+    if args.worker == "options":
+        chunks = [int(c) for c in args.options_chunks.split(",")]
+        B, N = args.options_batch, args.options_steps
+        print(f"# bench_montecarlo --options: B={B} on 2 devices, {N} steps, interleaved")
+        print("| compiled with | chunk | CPU µs per run-step, min | median | same metrics |")
+        print("|---|---:|---:|---:|---|")
+        for name, L, lo, med, same in compare_options(B, N, chunks, args.repeat):
+            print(f"| {name} | {L} | {lo:.4f} | {med:.4f} | {same} |")
+        return 0
     if args.worker:
         print(json.dumps(worker(args)))
         return 0

@@ -478,6 +478,19 @@ def test_second_sweep_compiles_no_kernel(sweep, caplog):
     assert not [m for m in compiled if "_scan_chunk" in m], compiled
 
 
+def test_compile_options_keep_the_bits(sweep, monkeypatch):
+    """The chunk compiled with XLA's defaults gives the sweep's bits (CHUNK_COMPILER_OPTIONS)."""
+    from uimm_jax.engine.scan import simulate_diagnose
+    from uimm_jax.studies import sweep_batch
+
+    assert sweep_batch.CHUNK_COMPILER_OPTIONS
+    plain = jax.jit(simulate_diagnose, static_argnums=(0, 1, 2))
+    monkeypatch.setattr(sweep_batch, "_jit_chunk", plain)
+    again = mc.run_sweep(small_scenario())
+    for name in ("decl_step", "correct_samples", "sq_err", "health"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(sweep, name))
+
+
 def test_sharded_equals_unsharded(sweep, sharded_proc):
     proc, out = sharded_proc
     stdout, stderr = proc.communicate(timeout=600)

@@ -78,7 +78,7 @@ def register(subparsers) -> None:
     s.add_argument("--seed", type=int, help="root seed (default: [sweep].seed or the scenario's)")
     s.add_argument("--batch", type=int, help="runs per compiled batch (default 128)")
     s.add_argument(
-        "--chunk", type=int, help="time steps per compiled chunk (default: about 2e6 / batch)"
+        "--chunk", type=int, help="time steps per compiled chunk (default: about 6.4e5 / batch)"
     )
     s.add_argument(
         "--devices", type=int, help="shard the runs over this many devices (default: all)"

@@ -98,7 +98,7 @@ class SweepSpec:
         fault_free: include the fault-free case.
         cases: the fault cases.
         batch: runs per compiled batch.
-        chunk: time steps per compiled chunk (``None``: about ``2e6 / batch``).
+        chunk: time steps per compiled chunk (``None``: about ``6.4e5 / batch``).
     """
 
     runs: int
@@ -251,7 +251,7 @@ def sweep_spec(
     Defaults: ``runs = 100``, ``seed`` = the scenario's seed, ``methods`` = the scenario's
     method, ``magnitudes = [1.0]``, ``noise_scales = [1.0]``, ``fault_free = true``,
     ``cases`` = one case named after the scenario with its ``[[events]]`` (none if it has
-    no events), ``batch = 128``, ``chunk`` about ``2e6 / batch`` steps.
+    no events), ``batch = 128``, ``chunk`` about ``6.4e5 / batch`` steps.
 
     Raises:
         ScenarioError: naming the field (``[sweep].runs``) and what is expected.

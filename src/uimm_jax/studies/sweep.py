@@ -79,11 +79,14 @@ from uimm_jax.studies.sweep_store import Finished, manifest_for, open_store
 
 __all__ = ["CHUNK_RUN_STEPS", "LANES", "batch_inputs", "run_batch", "run_sweep"]
 
-CHUNK_RUN_STEPS = 2_000_000
-"""Default chunk length: about this many run-steps per chunk (``chunk = 2e6 / batch``).
+CHUNK_RUN_STEPS = 640_000
+"""Default chunk length: about this many run-steps per chunk (``chunk = 6.4e5 / batch``).
 
 A chunk keeps the truth's states, measurements and codes of its steps, about 52 bytes per
-run-step (float64, 3 states, 3 outputs): ~100 MB with the default."""
+run-step (float64, 3 states, 3 outputs), plus its noise draw (48): ~65 MB with the
+default.  Measured (benchmarks/README.md, "Monte Carlo throughput", session 8): at the
+default batch of 128 on 2 devices, chunks of 5000 steps take 8 % less CPU time per
+run-step than the 15625 of the former ``2e6 / batch``, and 2500 slightly more than 5000."""
 
 LANES = 16
 """Each device's share of a batch is padded to a multiple of this many runs.
