@@ -20,8 +20,10 @@ once that hypothesis has fallen below ``restart_below`` (it then restarts from t
 itself).  Mixing (eqs. 15-17) thus never blends a competing hypothesis' estimate with
 the prior, and the retraction hypothesis leaves a declared estimate alone.
 A hypothesis restarts at most once every ``restart_gap`` steps for its low
-probability (``floor_gap`` for being held at the floor), and a declared fault's walk can
-grow with its size (``walk_rel``): both are off by default (docs/faults.md, "Ramps").
+probability (``floor_gap`` for being held at the floor; both 1 by default), and not at all
+while the leading hypothesis is still too small to be declared (``race_below``); a
+declared fault's walk grows with its size while it is the only declared fault
+(``walk_rel``, ``walk_rel_single``; docs/faults.md, "Ramps").
 An undeclared hypothesis' own magnitude is kept ``>= floor_mean`` (and its standard
 deviation ``>= floor_sd``), so that it means "a fault" and does not settle on nominal in
 fault-free data; ``floor_mean`` is below ``declare_min`` so that the bound never decides
@@ -95,7 +97,14 @@ class EstSettings(NamedTuple):
         gap_first_only: ``restart_gap`` holds only while no fault is declared (after a
             declaration a hypothesis of low probability restarts at every step).
         walk_rel: a declared fault's random walk has standard deviation
-            ``max(walk, walk_rel * |a|)`` at model 0's estimate ``a`` (0: ``walk``).
+            ``max(walk, walk_rel * |a|)`` at model 0's estimate ``a`` (0: ``walk``; see
+            ``_walk_rel``).
+        race_below: while the most probable model is an undeclared hypothesis whose
+            estimate is below this (a race of faults too small to declare), a hypothesis
+            of low probability does not restart from the prior but keeps filtering on its
+            own estimate (see ``_reset_unused``; 0 turns it off).
+        walk_rel_single: ``walk_rel`` applies only while the fault is the only declared
+            one.
     """
 
     walk: float = 1e-3
@@ -111,7 +120,9 @@ class EstSettings(NamedTuple):
     restart_gap: int = 1
     floor_gap: int = 1
     gap_first_only: bool = False
-    walk_rel: float = 0.0
+    walk_rel: float = 3e-3
+    race_below: float = 0.15
+    walk_rel_single: bool = True
 
 
 class EstState(NamedTuple):
@@ -277,8 +288,14 @@ class UIMMEstDiagnoser(Diagnoser):
         (with ``gap_first_only``: only while nothing is declared), and evolves on its own
         estimate in between, so that it can gather the evidence to come back: restarting
         at every step (``restart_gap = 1``) lets a one-step likelihood decide, which never
-        pays for the prior's width (docs/faults.md, "Ramps").  Returns the state and the
-        new ``since``.
+        pays for the prior's width (docs/faults.md, "Ramps").
+
+        Nor does it restart while the most probable model is an undeclared hypothesis
+        whose estimate is below ``race_below`` (a race of faults too small to declare):
+        early in a ramp two look-alikes (valve wear, leakage) race where only noise
+        tells them apart, and the one behind keeps gathering the evidence (``Kq``) that
+        grows with the fault.  An abrupt fault's leader starts from the prior, above the
+        bound.  Returns the state and the new ``since``.
         """
         n, F, s = self.dyn.n, self.num_faults, self.settings
         var_all = _mag_var(st.cov, n)
@@ -288,6 +305,12 @@ class UIMMEstDiagnoser(Diagnoser):
         due = since >= s.restart_gap
         if s.gap_first_only:
             due = due | jnp.any(declared, axis=0)
+        if s.race_below > 0:  # a race of faults too small to declare: no restart
+            lead = jnp.argmax(st.log_mode_probs, axis=0)  # (*runs,)
+            hyp = np.arange(1, F + 1).reshape((F,) + (1,) * (use.ndim - 2))
+            lead_f = (lead == hyp) & ~declared  # (F, *runs)
+            small = jnp.any(lead_f & (own_mean < s.race_below), axis=0)
+            due = due & ~small
         low = (st.log_mode_probs[1:] < np.log(s.restart_below)) & due
         held = (own_mean <= s.floor_mean) & (since >= s.floor_gap)  # held at its floor
         live = ~low & ~held  # (F, *runs)
@@ -323,6 +346,21 @@ class UIMMEstDiagnoser(Diagnoser):
         add = jnp.where(hyp, jnp.maximum(s.floor_sd**2 - var, 0.0), 0.0)
         return st._replace(mean=mean, cov=_add_mag_var(st.cov, n, add))
 
+    def _walk_rel(self, st: IMMState, declared: jax.Array) -> IMMState:
+        """A declared fault's random walk: standard deviation ``max(walk, walk_rel |a|)``.
+
+        ``a`` is model 0's estimate.  The variance beyond ``walk^2`` (in ``Q``) is added to
+        every model's variance of ``a`` before the step (``Q`` stays one matrix).  With
+        ``walk_rel_single`` only while no other fault is declared: a second fault can make
+        the first weakly observable (valve wear under air in oil), and a faster walk then
+        only adds error (docs/faults.md, "Ramps").  Adds a PSD matrix.
+        """
+        n, s = self.dyn.n, self.settings
+        sd = jnp.maximum(s.walk, s.walk_rel * jnp.abs(st.mean[n:, 0]))  # (F, *runs)
+        grow = declared & (jnp.sum(declared, axis=0) == 1) if s.walk_rel_single else declared
+        extra = jnp.where(grow, sd**2 - s.walk**2, 0.0)[:, None]  # (F, 1, *runs)
+        return st._replace(cov=_add_mag_var(st.cov, n, jnp.broadcast_to(extra, st.mean[n:].shape)))
+
     def _reopen(self, st: IMMState, new: jax.Array) -> IMMState:
         """A newly declared fault's magnitude: sd ``>= reopen_rel`` times its mean, every model.
 
@@ -357,14 +395,10 @@ class UIMMEstDiagnoser(Diagnoser):
         declared = state.declared
         dtype = state.imm.mean.dtype
         imm0, since = self._reset_unused(state.imm, state.cache.use, declared, state.since)
+        if s.walk_rel:  # a declared fault's walk grows with its size
+            imm0 = self._walk_rel(imm0, declared)
         q_aug = jnp.zeros((n + F, n + F), dtype).at[:n, :n].set(params.imm.Q)
         q_aug = q_aug.at[n:, n:].set(jnp.eye(F, dtype=dtype) * s.walk**2)
-        if s.walk_rel:  # a declared fault's walk grows with its size: Q per run
-            sd = jnp.maximum(s.walk, s.walk_rel * jnp.abs(state.imm.mean[n:, 0]))
-            extra = jnp.where(declared, sd**2 - s.walk**2, 0.0).astype(dtype)  # (F, *runs)
-            pad = jnp.concatenate([jnp.zeros((n,) + extra.shape[1:], dtype), extra])
-            eye = np.eye(n + F).reshape((n + F, n + F, 1) + (1,) * (extra.ndim - 1))
-            q_aug = q_aug.reshape(q_aug.shape + (1,) * extra.ndim) + eye * pad[:, None, None]
         imm_params = IMMParams(params.imm.log_transition, q_aug, params.imm.R)
         imm_state, info = imm_step(
             self.aug, imm0, state.cache, imm_params, u, y, gate=self.gate, with_cov=with_cov
