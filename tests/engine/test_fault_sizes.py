@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from _robustness_helpers import short_dict
+from _robustness_helpers import short_dict, with_est_settings
 from uimm_jax.engine.bank import fault_table, param_at_magnitude
 from uimm_jax.engine.truth import RAMP_STAIRS, fault_breakpoints, plan_phases
 from uimm_jax.scenario.parse import parse_scenario
@@ -256,8 +256,6 @@ def test_uimm_est_isolates_incipient_valve_wear_with_the_ramp_settings():
     at 0.71 s).  ``restart_gap`` (a hypothesis that dropped out gathers evidence between
     restarts) and ``walk_rel`` (a declared fault's walk grows with its size) fix it.
     """
-    import dataclasses
-
     from uimm_jax.engine.uimm_est import EstSettings
     from uimm_jax.studies.run import execute_run, filter_measurements, setup_scenario
 
@@ -266,16 +264,7 @@ def test_uimm_est_isolates_incipient_valve_wear_with_the_ramp_settings():
     d["events"] = [{"time": 0.5, "fault": "valve_wear", "magnitude": 0.5, "ramp": 1.0}]
     st = setup_scenario(parse_scenario(d), "uimm-est")
     ramp_settings = EstSettings(restart_gap=1000, gap_first_only=True, walk_rel=3e-3)
-    diag = dataclasses.replace(st.diagnoser, settings=ramp_settings)
-    flt = st.scenario.filter
-    init = diag.init(
-        np.asarray(flt.initial_mean),
-        np.asarray(flt.initial_cov),
-        st.initial_mode_probs,
-        (),
-        st.init_state.imm.mean.dtype,
-    )
-    st = dataclasses.replace(st, diagnoser=diag, init_state=init)
+    st = with_est_settings(st, ramp_settings)
     res = execute_run(st, filter_measurements, seed=0)
     assert [(x["fault"], x["correct"]) for x in res.summary["declarations"]] == [
         ("valve_wear", True)

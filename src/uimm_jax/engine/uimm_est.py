@@ -96,6 +96,18 @@ class EstSettings(NamedTuple):
             declaration a hypothesis of low probability restarts at every step).
         walk_rel: a declared fault's random walk has standard deviation
             ``max(walk, walk_rel * |a|)`` at model 0's estimate ``a`` (0: ``walk``).
+        post_gap: steps between two restarts for low probability while a fault is
+            declared (0: ``restart_gap``, or 1 with ``gap_first_only``), so that a
+            challenger "D + f_k" of a new fault keeps its own evidence while the declared
+            set's estimates adapt (docs/faults.md, "Session 8").
+        walk_settled: a declared fault's walk standard deviation once it has been
+            declared for ``settle_steps`` steps (0: off, the walk above throughout), so
+            that a settled estimate does not absorb a new fault.
+        post_floor_gap: steps between two restarts of a hypothesis held at the floor
+            while a fault is declared (0: ``floor_gap``).
+        retract_hold: samples a retraction rule must hold (0: the filter's ``hold``).
+        settle_steps: steps after its declaration during which a fault's walk is the one
+            above (``walk``, ``walk_rel``), to follow a fault still growing.
     """
 
     walk: float = 1e-3
@@ -112,6 +124,11 @@ class EstSettings(NamedTuple):
     floor_gap: int = 1
     gap_first_only: bool = False
     walk_rel: float = 0.0
+    post_gap: int = 0
+    walk_settled: float = 0.0
+    settle_steps: int = 0
+    post_floor_gap: int = 0
+    retract_hold: int = 0
 
 
 class EstState(NamedTuple):
@@ -158,6 +175,12 @@ class EstInfo(NamedTuple):
     magnitude: jax.Array
     magnitude_sd: jax.Array
     retracted_now: jax.Array
+
+
+def _gap_cap(s: EstSettings) -> int:
+    """The largest restart gap of ``s`` (``since`` counts up to it)."""
+    gaps = (s.restart_gap, s.floor_gap, s.post_gap, s.post_floor_gap)
+    return max(*gaps, s.settle_steps if s.walk_settled else 0)
 
 
 def _own_slots(F: int, nd: int) -> np.ndarray:
@@ -255,7 +278,7 @@ class UIMMEstDiagnoser(Diagnoser):
             base.run_model,
             base.run_len,
             jnp.zeros((F,) + tuple(runs), jnp.int32),
-            jnp.full((F,) + tuple(runs), max(s.restart_gap, s.floor_gap), jnp.int32),
+            jnp.full((F,) + tuple(runs), _gap_cap(s), jnp.int32),
         )
 
     def _reset_unused(self, st: IMMState, use: jax.Array, declared: jax.Array, since):
@@ -285,14 +308,20 @@ class UIMMEstDiagnoser(Diagnoser):
         own = _own_slots(F, use.ndim - 2)
         own_mean = jnp.sum(jnp.where(own, st.mean[n:], 0.0), axis=1)  # (F, *runs)
         own_var = jnp.sum(jnp.where(own, var_all, 0.0), axis=1)
+        any_decl = jnp.any(declared, axis=0)
         due = since >= s.restart_gap
-        if s.gap_first_only:
-            due = due | jnp.any(declared, axis=0)
+        if s.post_gap > 0:
+            due = jnp.where(any_decl, since >= s.post_gap, due)
+        elif s.gap_first_only:
+            due = due | any_decl
         low = (st.log_mode_probs[1:] < np.log(s.restart_below)) & due
-        held = (own_mean <= s.floor_mean) & (since >= s.floor_gap)  # held at its floor
+        floor_gap = s.floor_gap
+        if s.post_floor_gap > 0:
+            floor_gap = jnp.where(any_decl, s.post_floor_gap, s.floor_gap)
+        held = (own_mean <= s.floor_mean) & (since >= floor_gap)  # held at its floor
         live = ~low & ~held  # (F, *runs)
         restart = ~declared & ~live
-        since = jnp.where(restart, 1, jnp.minimum(since + 1, max(s.restart_gap, s.floor_gap)))
+        since = jnp.where(restart, 1, jnp.minimum(since + 1, _gap_cap(s)))
         use = use & ~(own & restart[:, None])
         tm = jnp.where(declared, st.mean[n:, 0], jnp.where(live, own_mean, s.prior_mean))
         tv = jnp.where(declared, var_all[:, 0], jnp.where(live, own_var, s.prior_sd**2))
@@ -365,6 +394,17 @@ class UIMMEstDiagnoser(Diagnoser):
             pad = jnp.concatenate([jnp.zeros((n,) + extra.shape[1:], dtype), extra])
             eye = np.eye(n + F).reshape((n + F, n + F, 1) + (1,) * (extra.ndim - 1))
             q_aug = q_aug.reshape(q_aug.shape + (1,) * extra.ndim) + eye * pad[:, None, None]
+        if s.walk_settled:  # a fault declared settle_steps ago walks with walk_settled
+            settled = declared & (since >= s.settle_steps)
+            sd_now = s.walk
+            if s.walk_rel:
+                sd_now = jnp.maximum(s.walk, s.walk_rel * jnp.abs(state.imm.mean[n:, 0]))
+            extra = jnp.where(settled, s.walk_settled**2 - sd_now**2, 0.0).astype(dtype)
+            pad = jnp.concatenate([jnp.zeros((n,) + extra.shape[1:], dtype), extra])
+            eye = np.eye(n + F).reshape((n + F, n + F, 1) + (1,) * (extra.ndim - 1))
+            if q_aug.ndim == 2:
+                q_aug = q_aug.reshape(q_aug.shape + (1,) * extra.ndim)
+            q_aug = q_aug + eye * pad[:, None, None]
         imm_params = IMMParams(params.imm.log_transition, q_aug, params.imm.R)
         imm_state, info = imm_step(
             self.aug, imm0, state.cache, imm_params, u, y, gate=self.gate, with_cov=with_cov
@@ -399,7 +439,7 @@ class UIMMEstDiagnoser(Diagnoser):
         ret_hyp = (dec.candidate == models) & declared & sure  # (F, *runs)
         low = declared & (est < s.retract_below)
         low_len = jnp.where(low | ret_hyp, state.low_len + 1, 0)
-        retract = low_len >= params.hold
+        retract = low_len >= (s.retract_hold or params.hold)
         retract = retract & ~dec.declared_now  # one change per step
         low_len = jnp.where(retract, 0, low_len).astype(jnp.int32)
         any_ret = jnp.any(retract, axis=0)
@@ -410,6 +450,9 @@ class UIMMEstDiagnoser(Diagnoser):
         new_declared = jnp.where(retract, False, dec.declared)
         imm_state, cache = self._handover(imm_state, state.cache, winner, changed, new_declared)
         imm_state = self._reopen(imm_state, new_declared & ~declared)
+        if s.walk_settled:  # since: a declared fault's age; a retracted one is due again
+            since = jnp.where(new_declared & ~declared, 0, since)
+            since = jnp.where(retract, _gap_cap(s), since).astype(jnp.int32)
         new_state = EstState(
             imm_state,
             cache,
