@@ -145,7 +145,7 @@ def part_full(args) -> dict:
 
     out = {}
     keep = ("declarations", "retractions", "false_declarations", "detection_delay_s")
-    for sim in (1, 2):
+    for sim in args.sims:
         sc = load_scenario(REPO / "scenarios" / f"paper_sim{sim}_tuned.toml")
         for seed in range(3):
             for method in args.methods:
@@ -284,7 +284,7 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--batch", type=int, default=128)
     p.add_argument("--tag", default="")
-    p.add_argument("--sims", type=int, nargs="+", default=[1, 2], help="sizes/ramps/intermittent")
+    p.add_argument("--sims", type=int, nargs="+", default=[1, 2], help="parts by sim")
     p.add_argument("--mags", type=float, nargs="+", default=MAGS, help="sizes/ramps magnitudes")
     p.add_argument("--walk", type=float, default=None, help="EstSettings.walk (exploration)")
     p.add_argument(
