@@ -22,6 +22,8 @@ the prior, and the retraction hypothesis leaves a declared estimate alone.
 A hypothesis restarts at most once every ``restart_gap`` steps for its low
 probability (``floor_gap`` for being held at the floor), and a declared fault's walk can
 grow with its size (``walk_rel``): both are off by default (docs/faults.md, "Ramps").
+While a fault is declared, ``walk_settled``, ``post_gap``, ``post_floor_gap`` and
+``retract_hold`` (off by default; docs/faults.md, "Session 8") change these rules.
 An undeclared hypothesis' own magnitude is kept ``>= floor_mean`` (and its standard
 deviation ``>= floor_sd``), so that it means "a fault" and does not settle on nominal in
 fault-free data; ``floor_mean`` is below ``declare_min`` so that the bound never decides
@@ -97,17 +99,14 @@ class EstSettings(NamedTuple):
         walk_rel: a declared fault's random walk has standard deviation
             ``max(walk, walk_rel * |a|)`` at model 0's estimate ``a`` (0: ``walk``).
         post_gap: steps between two restarts for low probability while a fault is
-            declared (0: ``restart_gap``, or 1 with ``gap_first_only``), so that a
-            challenger "D + f_k" of a new fault keeps its own evidence while the declared
-            set's estimates adapt (docs/faults.md, "Session 8").
+            declared (0: ``restart_gap``, or 1 with ``gap_first_only``).
         walk_settled: a declared fault's walk standard deviation once it has been
-            declared for ``settle_steps`` steps (0: off, the walk above throughout), so
-            that a settled estimate does not absorb a new fault.
+            declared ``settle_steps`` steps (0: off), so that it does not absorb a new fault.
+        settle_steps: steps after its declaration during which a fault walks as above
+            (``walk``, ``walk_rel``), to follow a fault still growing.
         post_floor_gap: steps between two restarts of a hypothesis held at the floor
-            while a fault is declared (0: ``floor_gap``).
+            while a fault is declared (0: ``floor_gap``; docs/faults.md, "Session 8").
         retract_hold: samples a retraction rule must hold (0: the filter's ``hold``).
-        settle_steps: steps after its declaration during which a fault's walk is the one
-            above (``walk``, ``walk_rel``), to follow a fault still growing.
     """
 
     walk: float = 1e-3
@@ -388,23 +387,16 @@ class UIMMEstDiagnoser(Diagnoser):
         imm0, since = self._reset_unused(state.imm, state.cache.use, declared, state.since)
         q_aug = jnp.zeros((n + F, n + F), dtype).at[:n, :n].set(params.imm.Q)
         q_aug = q_aug.at[n:, n:].set(jnp.eye(F, dtype=dtype) * s.walk**2)
-        if s.walk_rel:  # a declared fault's walk grows with its size: Q per run
-            sd = jnp.maximum(s.walk, s.walk_rel * jnp.abs(state.imm.mean[n:, 0]))
+        if s.walk_rel or s.walk_settled:  # a declared fault's own walk: Q per run
+            sd = jnp.full(declared.shape, s.walk, dtype)
+            if s.walk_rel:  # grows with its size
+                sd = jnp.maximum(sd, s.walk_rel * jnp.abs(state.imm.mean[n:, 0]))
+            if s.walk_settled:  # declared settle_steps ago (``since`` is its age)
+                sd = jnp.where(since >= s.settle_steps, s.walk_settled, sd)
             extra = jnp.where(declared, sd**2 - s.walk**2, 0.0).astype(dtype)  # (F, *runs)
             pad = jnp.concatenate([jnp.zeros((n,) + extra.shape[1:], dtype), extra])
             eye = np.eye(n + F).reshape((n + F, n + F, 1) + (1,) * (extra.ndim - 1))
             q_aug = q_aug.reshape(q_aug.shape + (1,) * extra.ndim) + eye * pad[:, None, None]
-        if s.walk_settled:  # a fault declared settle_steps ago walks with walk_settled
-            settled = declared & (since >= s.settle_steps)
-            sd_now = s.walk
-            if s.walk_rel:
-                sd_now = jnp.maximum(s.walk, s.walk_rel * jnp.abs(state.imm.mean[n:, 0]))
-            extra = jnp.where(settled, s.walk_settled**2 - sd_now**2, 0.0).astype(dtype)
-            pad = jnp.concatenate([jnp.zeros((n,) + extra.shape[1:], dtype), extra])
-            eye = np.eye(n + F).reshape((n + F, n + F, 1) + (1,) * (extra.ndim - 1))
-            if q_aug.ndim == 2:
-                q_aug = q_aug.reshape(q_aug.shape + (1,) * extra.ndim)
-            q_aug = q_aug + eye * pad[:, None, None]
         imm_params = IMMParams(params.imm.log_transition, q_aug, params.imm.R)
         imm_state, info = imm_step(
             self.aug, imm0, state.cache, imm_params, u, y, gate=self.gate, with_cov=with_cov
