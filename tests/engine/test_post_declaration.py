@@ -111,3 +111,31 @@ def test_post_settings_keep_a_declared_wear_while_air_in_oil_grows(post):
     wear_kept = bool(np.all(codes[2500:] & 1))
     assert wear_kept == post
     assert bool(codes[-1] == 0b101) == post  # valve wear and air in oil, nothing else
+
+
+def test_sweep_counts_retractions_of_a_present_fault():
+    """``wrong_retractions``: runs whose last retraction of a fault came while it was present."""
+    from types import SimpleNamespace
+
+    from uimm_jax.studies.sweep_outputs import estimate_summary
+
+    R, F = 4, 2
+    on = np.array([[10, -1]] * R)
+    end = np.array([[-1, -1], [50, -1], [50, -1], [-1, -1]])
+    ret = np.array([[30, -1], [40, -1], [60, -1], [-1, -1]])  # present, present, ended, none
+    est = {
+        "retract_step": ret[None],
+        "magnitude": np.ones((1, R, F)),
+        "magnitude_sd": np.ones((1, R, F)),
+        "false_count": np.zeros((1, R), int),
+    }
+    res = SimpleNamespace(
+        estimates=est,
+        onset_step=on[None],
+        end_step=end[None],
+        true_magnitude=np.ones((1, R, F)),
+        faults=("a", "b"),
+        decl_step=np.full((1, R, F), 20),
+        dt=1e-4,
+    )
+    assert estimate_summary(res, 0)["wrong_retractions"] == {"a": 2}
