@@ -91,7 +91,7 @@ def _case(sim: int, a: str, ta: float, b: str, tb: float) -> dict:
 
 def part_sizes(args, ramp: float | None = None) -> dict:
     out = {}
-    for sim in (1, 2):
+    for sim in args.sims:
         a, b = FIRST[sim]
         r = ramp or 0.0
         t2 = 1.2 if not r else 1.5 + r
@@ -101,7 +101,9 @@ def part_sizes(args, ramp: float | None = None) -> dict:
             "name": f"sim{sim}",
             "events": [{"fault": a, "time": 0.5}, {"fault": b, "time": t2}],
         }
-        out[f"sim{sim}"] = _sweep(sc, [case], args, magnitudes=MAGS, ramps=[r], fault_free=False)
+        out[f"sim{sim}"] = _sweep(
+            sc, [case], args, magnitudes=args.mags, ramps=[r], fault_free=False
+        )
     return out
 
 
@@ -113,6 +115,8 @@ def part_faultfree(args) -> dict:
 def part_intermittent(args) -> dict:
     out = {}
     for sim, fault in ((2, "air_in_oil"), (1, "leakage")):
+        if sim not in args.sims:
+            continue
         sc = _scenario(sim, 6.0)
         case = {
             "name": f"{fault}-intermittent",
@@ -141,7 +145,7 @@ def part_full(args) -> dict:
 
     out = {}
     keep = ("declarations", "retractions", "false_declarations", "detection_delay_s")
-    for sim in (1, 2):
+    for sim in args.sims:
         sc = load_scenario(REPO / "scenarios" / f"paper_sim{sim}_tuned.toml")
         for seed in range(3):
             for method in args.methods:
@@ -280,6 +284,8 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--batch", type=int, default=128)
     p.add_argument("--tag", default="")
+    p.add_argument("--sims", type=int, nargs="+", default=[1, 2], help="parts by sim")
+    p.add_argument("--mags", type=float, nargs="+", default=MAGS, help="sizes/ramps magnitudes")
     p.add_argument("--walk", type=float, default=None, help="EstSettings.walk (exploration)")
     p.add_argument(
         "--set",

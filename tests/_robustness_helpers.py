@@ -23,6 +23,22 @@ TUNED = {1: SCENARIOS / "paper_sim1_tuned.toml", 2: SCENARIOS / "paper_sim2_tune
 CHUNK = 10_000  # steps per compiled chunk: every run below is a multiple of it
 
 
+def with_est_settings(setup, settings):
+    """``setup`` (a uimm-est ``setup_scenario``) with its diagnoser's ``EstSettings`` replaced."""
+    import dataclasses
+
+    diag = dataclasses.replace(setup.diagnoser, settings=settings)
+    flt = setup.scenario.filter
+    init = diag.init(
+        np.asarray(flt.initial_mean),
+        np.asarray(flt.initial_cov),
+        setup.initial_mode_probs,
+        (),
+        setup.init_state.imm.mean.dtype,
+    )
+    return dataclasses.replace(setup, diagnoser=diag, init_state=init)
+
+
 def tuned_dict(sim: int) -> dict:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UIMMWarning)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from _robustness_helpers import short_dict
+from _robustness_helpers import short_dict, with_est_settings
 from uimm_jax.engine.bank import fault_table, param_at_magnitude
 from uimm_jax.engine.truth import RAMP_STAIRS, fault_breakpoints, plan_phases
 from uimm_jax.scenario.parse import parse_scenario
@@ -258,22 +258,6 @@ def _diag_with(diag, **changes):
     return dataclasses.replace(diag, settings=diag.settings._replace(**changes))
 
 
-def _with_settings(st, **changes):
-    """The run setup ``st`` with some of its uimm-est settings changed."""
-    import dataclasses
-
-    diag = _diag_with(st.diagnoser, **changes)
-    flt = st.scenario.filter
-    init = diag.init(
-        np.asarray(flt.initial_mean),
-        np.asarray(flt.initial_cov),
-        st.initial_mode_probs,
-        (),
-        st.init_state.imm.mean.dtype,
-    )
-    return dataclasses.replace(st, diagnoser=diag, init_state=init)
-
-
 @pytest.mark.parametrize(
     ("mag", "off"),
     [(0.5, {"race_below": 0.0}), (3.0, {"walk_rel": 0.0})],
@@ -294,9 +278,8 @@ def test_uimm_est_isolates_incipient_valve_wear(mag, off):
     d["filter"].pop("initial_mode_probs")
     d["events"] = [{"time": 0.5, "fault": "valve_wear", "magnitude": mag, "ramp": 1.0}]
     st = setup_scenario(parse_scenario(d), "uimm-est")
-    res, res_off = (
-        execute_run(s, filter_measurements, seed=0) for s in (st, _with_settings(st, **off))
-    )
+    st_off = with_est_settings(st, st.diagnoser.settings._replace(**off))
+    res, res_off = (execute_run(s, filter_measurements, seed=0) for s in (st, st_off))
     assert [(x["fault"], x["correct"]) for x in res.summary["declarations"]] == [
         ("valve_wear", True)
     ]
@@ -362,7 +345,8 @@ def test_walk_rel_single_grows_a_lone_declared_faults_walk_only():
     assert s.walk_rel_single and extra > 0
     for single in (True, False):
         d2 = _diag_with(diag, walk_rel_single=single)
-        got = np.asarray(d2._walk_rel(state, declared).cov) - cov
+        since = jnp.ones(declared.shape, jnp.int32)
+        got = np.asarray(d2._walk_rel(state, declared, since).cov) - cov
         want = np.zeros_like(cov)
         for j, r in [(0, 0)] + ([] if single else [(0, 1), (1, 1)]):
             want[n + j, n + j, :, r] = extra  # every model's copy

@@ -24,6 +24,9 @@ probability (``floor_gap`` for being held at the floor; both 1 by default), and 
 while the leading hypothesis is still too small to be declared (``race_below``); a
 declared fault's walk grows with its size while it is the only declared fault
 (``walk_rel``, ``walk_rel_single``; docs/faults.md, "Ramps").
+While a fault is declared, ``walk_settled``, ``post_gap``, ``post_floor_gap`` and
+``retract_hold`` (off by default; docs/faults.md, "Session 8: after a declaration")
+change these rules.
 An undeclared hypothesis' own magnitude is kept ``>= floor_mean`` (and its standard
 deviation ``>= floor_sd``), so that it means "a fault" and does not settle on nominal in
 fault-free data; ``floor_mean`` is below ``declare_min`` so that the bound never decides
@@ -55,7 +58,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Any, ClassVar, NamedTuple, final
+from typing import Any, ClassVar, final
 
 import jax
 import jax.numpy as jnp
@@ -64,9 +67,10 @@ import numpy as np
 from uimm_jax.engine.augmented import AugCache, AugmentedDynamics
 from uimm_jax.engine.bank import set_codes
 from uimm_jax.engine.decision import decide
-from uimm_jax.engine.imm import IMMParams, IMMState, StepInfo, imm_step
+from uimm_jax.engine.imm import IMMParams, IMMState, imm_step
 from uimm_jax.engine.uimm import Diagnoser, DiagParams, _pick_model
 from uimm_jax.engine.uimm import build_diagnoser as _build_fixed
+from uimm_jax.engine.uimm_est_types import EstInfo, EstSettings, EstState
 
 __all__ = ["EstInfo", "EstSettings", "EstState", "UIMMEstDiagnoser", "build_diagnoser"]
 
@@ -74,101 +78,10 @@ Z95 = 1.959963984540054
 """The two-sided 95 % normal quantile (magnitude intervals)."""
 
 
-class EstSettings(NamedTuple):
-    """Static settings of the magnitude estimation (module doc; magnitude units).
-
-    Attributes:
-        walk: random-walk standard deviation of a magnitude per step.
-        prior_mean: prior magnitude of a new fault (1: the library's value).
-        prior_sd: its standard deviation.
-        floor_sd: smallest standard deviation of an undeclared hypothesis' magnitude.
-        floor_mean: smallest mean of an undeclared hypothesis' own magnitude.
-        declare_min: a fault is declared only if its estimate is at least this.
-        retract_below: a declared fault whose estimate stays below this is retracted.
-        relin: re-centre the expansion when an estimate moves this far from it.
-        restart_below: an undeclared hypothesis of lower probability restarts its
-            magnitude from the prior (see ``_reset_unused``).
-        reopen_rel: on its declaration, a fault's magnitude standard deviation is raised
-            to at least this fraction of its estimate, in every model (see ``_reopen``;
-            0 turns it off).
-        restart_gap: steps between two restarts of a hypothesis for low probability
-            (1: at every step); a restart at the floor is not held back.
-        floor_gap: steps between two restarts of a hypothesis held at the floor.
-        gap_first_only: ``restart_gap`` holds only while no fault is declared (after a
-            declaration a hypothesis of low probability restarts at every step).
-        walk_rel: a declared fault's random walk has standard deviation
-            ``max(walk, walk_rel * |a|)`` at model 0's estimate ``a`` (0: ``walk``; see
-            ``_walk_rel``).
-        race_below: while the most probable model is an undeclared hypothesis whose
-            estimate is below this (a race of faults too small to declare), a hypothesis
-            of low probability does not restart from the prior but keeps filtering on its
-            own estimate (see ``_reset_unused``; 0 turns it off).
-        walk_rel_single: ``walk_rel`` applies only while the fault is the only declared
-            one.
-    """
-
-    walk: float = 1e-3
-    prior_mean: float = 1.0
-    prior_sd: float = 1.0
-    floor_sd: float = 0.0
-    floor_mean: float = 0.05
-    declare_min: float = 0.15
-    retract_below: float = 0.1
-    relin: float = 0.02
-    restart_below: float = 1e-3
-    reopen_rel: float = 0.2
-    restart_gap: int = 1
-    floor_gap: int = 1
-    gap_first_only: bool = False
-    walk_rel: float = 3e-3
-    race_below: float = 0.15
-    walk_rel_single: bool = True
-
-
-class EstState(NamedTuple):
-    """Carried state of :class:`UIMMEstDiagnoser`.
-
-    Attributes:
-        imm: the bank's :class:`~uimm_jax.engine.imm.IMMState` over ``[x; a]``.
-        cache: the :class:`~uimm_jax.engine.augmented.AugCache`.
-        declared: ``(F, *runs)`` bool, the declared set ``D``.
-        run_model: ``(*runs,)`` int32, the model whose run counter is active.
-        run_len: ``(*runs,)`` int32, how many samples it has qualified.
-        low_len: ``(F, *runs)`` int32, samples a declared estimate has stayed low.
-        since: ``(F, *runs)`` int32, steps since each hypothesis last restarted from the
-            prior (counted up to the larger of ``restart_gap`` and ``floor_gap``).
-    """
-
-    imm: IMMState
-    cache: AugCache
-    declared: jax.Array
-    run_model: jax.Array
-    run_len: jax.Array
-    low_len: jax.Array
-    since: jax.Array
-
-
-class EstInfo(NamedTuple):
-    """Per-step outputs: those of :class:`~uimm_jax.engine.uimm.DiagInfo` and the sizes.
-
-    Attributes:
-        step: the IMM :class:`~uimm_jax.engine.imm.StepInfo` (plant state only).
-        recognised: ``(*runs,)`` int32 code of the recognised fault set.
-        declared: ``(*runs,)`` int32 code of the declared set after this step.
-        declared_now: ``(*runs,)`` bool, a declaration or retraction happened.
-        magnitude: ``(F, *runs)`` estimated magnitude of each fault: model 0's for a
-            declared fault, its hypothesis' for the others.
-        magnitude_sd: ``(F, *runs)`` its standard deviation.
-        retracted_now: ``(*runs,)`` bool, a retraction happened at this step.
-    """
-
-    step: StepInfo
-    recognised: jax.Array
-    declared: jax.Array
-    declared_now: jax.Array
-    magnitude: jax.Array
-    magnitude_sd: jax.Array
-    retracted_now: jax.Array
+def _gap_cap(s: EstSettings) -> int:
+    """The largest restart gap of ``s`` (``since`` counts up to it)."""
+    gaps = (s.restart_gap, s.floor_gap, s.post_gap, s.post_floor_gap)
+    return max(*gaps, s.settle_steps if s.walk_settled else 0)
 
 
 def _own_slots(F: int, nd: int) -> np.ndarray:
@@ -266,7 +179,7 @@ class UIMMEstDiagnoser(Diagnoser):
             base.run_model,
             base.run_len,
             jnp.zeros((F,) + tuple(runs), jnp.int32),
-            jnp.full((F,) + tuple(runs), max(s.restart_gap, s.floor_gap), jnp.int32),
+            jnp.full((F,) + tuple(runs), _gap_cap(s), jnp.int32),
         )
 
     def _reset_unused(self, st: IMMState, use: jax.Array, declared: jax.Array, since):
@@ -302,9 +215,12 @@ class UIMMEstDiagnoser(Diagnoser):
         own = _own_slots(F, use.ndim - 2)
         own_mean = jnp.sum(jnp.where(own, st.mean[n:], 0.0), axis=1)  # (F, *runs)
         own_var = jnp.sum(jnp.where(own, var_all, 0.0), axis=1)
+        any_decl = jnp.any(declared, axis=0)
         due = since >= s.restart_gap
-        if s.gap_first_only:
-            due = due | jnp.any(declared, axis=0)
+        if s.post_gap > 0:
+            due = jnp.where(any_decl, since >= s.post_gap, due)
+        elif s.gap_first_only:
+            due = due | any_decl
         if s.race_below > 0:  # a race of faults too small to declare: no restart
             lead = jnp.argmax(st.log_mode_probs, axis=0)  # (*runs,)
             hyp = np.arange(1, F + 1).reshape((F,) + (1,) * (use.ndim - 2))
@@ -312,10 +228,13 @@ class UIMMEstDiagnoser(Diagnoser):
             small = jnp.any(lead_f & (own_mean < s.race_below), axis=0)
             due = due & ~small
         low = (st.log_mode_probs[1:] < np.log(s.restart_below)) & due
-        held = (own_mean <= s.floor_mean) & (since >= s.floor_gap)  # held at its floor
+        floor_gap = s.floor_gap
+        if s.post_floor_gap > 0:
+            floor_gap = jnp.where(any_decl, s.post_floor_gap, s.floor_gap)
+        held = (own_mean <= s.floor_mean) & (since >= floor_gap)  # held at its floor
         live = ~low & ~held  # (F, *runs)
         restart = ~declared & ~live
-        since = jnp.where(restart, 1, jnp.minimum(since + 1, max(s.restart_gap, s.floor_gap)))
+        since = jnp.where(restart, 1, jnp.minimum(since + 1, _gap_cap(s)))
         use = use & ~(own & restart[:, None])
         tm = jnp.where(declared, st.mean[n:, 0], jnp.where(live, own_mean, s.prior_mean))
         tv = jnp.where(declared, var_all[:, 0], jnp.where(live, own_var, s.prior_sd**2))
@@ -346,7 +265,7 @@ class UIMMEstDiagnoser(Diagnoser):
         add = jnp.where(hyp, jnp.maximum(s.floor_sd**2 - var, 0.0), 0.0)
         return st._replace(mean=mean, cov=_add_mag_var(st.cov, n, add))
 
-    def _walk_rel(self, st: IMMState, declared: jax.Array) -> IMMState:
+    def _walk_rel(self, st: IMMState, declared: jax.Array, since: jax.Array) -> IMMState:
         """A declared fault's random walk: standard deviation ``max(walk, walk_rel |a|)``.
 
         ``a`` is model 0's estimate.  The variance beyond ``walk^2`` (in ``Q``) is added to
@@ -358,6 +277,8 @@ class UIMMEstDiagnoser(Diagnoser):
         n, s = self.dyn.n, self.settings
         sd = jnp.maximum(s.walk, s.walk_rel * jnp.abs(st.mean[n:, 0]))  # (F, *runs)
         grow = declared & (jnp.sum(declared, axis=0) == 1) if s.walk_rel_single else declared
+        if s.walk_settled:  # a settled fault walks at ``walk_settled`` instead (``step``)
+            grow = grow & (since < s.settle_steps)
         extra = jnp.where(grow, sd**2 - s.walk**2, 0.0)[:, None]  # (F, 1, *runs)
         return st._replace(cov=_add_mag_var(st.cov, n, jnp.broadcast_to(extra, st.mean[n:].shape)))
 
@@ -396,9 +317,15 @@ class UIMMEstDiagnoser(Diagnoser):
         dtype = state.imm.mean.dtype
         imm0, since = self._reset_unused(state.imm, state.cache.use, declared, state.since)
         if s.walk_rel:  # a declared fault's walk grows with its size
-            imm0 = self._walk_rel(imm0, declared)
+            imm0 = self._walk_rel(imm0, declared, since)
         q_aug = jnp.zeros((n + F, n + F), dtype).at[:n, :n].set(params.imm.Q)
         q_aug = q_aug.at[n:, n:].set(jnp.eye(F, dtype=dtype) * s.walk**2)
+        if s.walk_settled:  # a fault declared settle_steps ago walks slower: Q per run
+            settled = declared & (since >= s.settle_steps)  # ``since`` is its age
+            extra = jnp.where(settled, s.walk_settled**2 - s.walk**2, 0.0).astype(dtype)
+            pad = jnp.concatenate([jnp.zeros((n,) + extra.shape[1:], dtype), extra])
+            eye = np.eye(n + F).reshape((n + F, n + F, 1) + (1,) * (extra.ndim - 1))
+            q_aug = q_aug.reshape(q_aug.shape + (1,) * extra.ndim) + eye * pad[:, None, None]
         imm_params = IMMParams(params.imm.log_transition, q_aug, params.imm.R)
         imm_state, info = imm_step(
             self.aug, imm0, state.cache, imm_params, u, y, gate=self.gate, with_cov=with_cov
@@ -433,7 +360,7 @@ class UIMMEstDiagnoser(Diagnoser):
         ret_hyp = (dec.candidate == models) & declared & sure  # (F, *runs)
         low = declared & (est < s.retract_below)
         low_len = jnp.where(low | ret_hyp, state.low_len + 1, 0)
-        retract = low_len >= params.hold
+        retract = low_len >= (s.retract_hold or params.hold)
         retract = retract & ~dec.declared_now  # one change per step
         low_len = jnp.where(retract, 0, low_len).astype(jnp.int32)
         any_ret = jnp.any(retract, axis=0)
@@ -444,6 +371,9 @@ class UIMMEstDiagnoser(Diagnoser):
         new_declared = jnp.where(retract, False, dec.declared)
         imm_state, cache = self._handover(imm_state, state.cache, winner, changed, new_declared)
         imm_state = self._reopen(imm_state, new_declared & ~declared)
+        if s.walk_settled:  # since: a declared fault's age; a retracted one is due again
+            since = jnp.where(new_declared & ~declared, 0, since)
+            since = jnp.where(retract, _gap_cap(s), since).astype(jnp.int32)
         new_state = EstState(
             imm_state,
             cache,

@@ -227,7 +227,9 @@ def estimate_summary(result: SweepResult, index: int) -> dict:
     * ``retraction_probability`` and ``retraction_delay_s`` (median, p95) over the runs
       whose fault ended: retracted after its end, and how long after;
     * ``false_declarations_all``: every declaration of an absent fault, re-declarations
-      included (``false_declarations`` counts first declarations).
+      included (``false_declarations`` counts first declarations);
+    * ``wrong_retractions``: runs whose last retraction of a fault came while it was
+      present (after its onset, before its end).
     """
     est = result.estimates
     if est is None or np.all(np.isnan(est["magnitude"][index])):
@@ -236,8 +238,13 @@ def estimate_summary(result: SweepResult, index: int) -> dict:
     truth = result.true_magnitude[index]
     mag, sd = est["magnitude"][index], est["magnitude_sd"][index]
     ret = est["retract_step"][index]
-    bias, mare, cov, rp, rd = {}, {}, {}, {}, {}
+    bias, mare, cov, rp, rd, wrong = {}, {}, {}, {}, {}, {}
     for j, f in enumerate(result.faults):
+        present = (
+            (on[:, j] >= 0) & (ret[:, j] >= on[:, j]) & ((end[:, j] < 0) | (ret[:, j] < end[:, j]))
+        )
+        if (on[:, j] >= 0).any():
+            wrong[f] = int(np.sum(present))
         stays = (on[:, j] >= 0) & (end[:, j] < 0) & (result.decl_step[index][:, j] >= 0)
         stays &= ret[:, j] < 0
         if stays.any():
@@ -258,6 +265,7 @@ def estimate_summary(result: SweepResult, index: int) -> dict:
         "retraction_probability": rp,
         "retraction_delay_s": rd,
         "false_declarations_all": int(est["false_count"][index].sum()),
+        "wrong_retractions": wrong,
     }
 
 
