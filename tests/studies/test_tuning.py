@@ -337,6 +337,11 @@ def test_cli_tune_registered_and_refuses_training_seed_as_eval_seed(tmp_path):
     assert "--eval-seed must differ" in bad.stderr
 
 
+@pytest.mark.slow
+@pytest.mark.skipif(
+    not os.environ.get("UIMM_JAX_SLOW_TESTS"),
+    reason="set UIMM_JAX_SLOW_TESTS=1 (15 s: a tune CLI process)",
+)
 def test_cli_tune_eval_only_evaluates_an_existing_file(tmp_path):
     """``--eval-only`` skips training, keeps the file and records a before/after table."""
     exe = [sys.executable, "-m", "uimm_jax", "tune", str(ROOT / "scenarios" / "paper_sim1.toml")]
