@@ -92,7 +92,10 @@ class EstState(NamedTuple):
         run_len: ``(*runs,)`` int32, how many samples it has qualified.
         low_len: ``(F, *runs)`` int32, samples a declared estimate has stayed low.
         since: ``(F, *runs)`` int32, steps since each hypothesis last restarted from the
-            prior (counted up to the larger of ``restart_gap`` and ``floor_gap``).
+            prior, counted up to the largest gap of the settings (``restart_gap``,
+            ``floor_gap``, ``post_gap``, ``post_floor_gap``, and ``settle_steps`` with
+            ``walk_settled``, when it is also a declared fault's age: reset on its
+            declaration).
     """
 
     imm: IMMState
