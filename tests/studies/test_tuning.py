@@ -387,17 +387,30 @@ def test_cli_tune_eval_only_evaluates_an_existing_file(tmp_path):
     assert res3.returncode == 2 and "--before-from" in res3.stderr
 
 
-def test_evaluation_progress_lines_are_labelled(capsys):
+def test_evaluation_progress_lines_are_labelled(capsys, monkeypatch):
     """The before/after sweeps' progress (``tune`` without ``--quiet``) names the stage.
 
-    It once raised a TypeError on the first progress call, after training had ended.
+    It once raised a TypeError on the first progress call, after training had ended. The
+    line is the sweep's own (``run_sweep(progress="after")``), with the stage in front.
     """
-    from uimm_jax.studies.tune_eval import _labelled
+    from uimm_jax.studies import tune_eval
+    from uimm_jax.studies.sweep import _Eta
 
-    assert _labelled(False, "before") is False
-    report = _labelled(True, "after")
-    report("uimm sim1", 50, 200)
-    report("uimm sim1", 200, 200)
+    seen = []
+
+    def fake_sweep(*args, progress, **kw):
+        seen.append(progress)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(tune_eval, "run_sweep", fake_sweep)
+    monkeypatch.setattr(tune_eval, "_sweep_cases", lambda scenarios: [])
+    for flag, want in ((True, "before"), (False, False)):
+        with pytest.raises(KeyboardInterrupt):
+            tune_eval.before_after(None, None, progress=flag)
+        assert seen[-1] == want
+    report = _Eta(4, 0, 50, 1, "after")
+    report("uimm sim1", 1, 50)
+    report("uimm sim1", 4, 200)
     err = capsys.readouterr().err
     assert "after: sweep uimm sim1" in err and " 25.0% of run-steps" in err
     first, last = err.split("\r")

@@ -171,12 +171,16 @@ class _Eta:
 
     It shows the runs finished out of the sweep's total, counted over every process (each
     process runs its share of every batch, so a batch's runs finish together everywhere),
-    the share of the run-steps done and an ETA from this session's pace.
+    the share of the run-steps done and an ETA from this session's pace. A ``stage`` label
+    (``tune``'s "before" and "after" sweeps) starts every line.
     """
 
-    def __init__(self, total_runs: int, resumed: int, num_steps: int, processes: int):
+    def __init__(
+        self, total_runs: int, resumed: int, num_steps: int, processes: int, stage: str = ""
+    ):
         self.total, self.resumed, self.N = total_runs, resumed, num_steps
         self.where = f" over {processes} processes" if processes > 1 else ""
+        self.stage = f"{stage}: " if stage else ""
         self.t0 = time.perf_counter()
 
     def __call__(self, label: str, runs_done: int, steps_done: float) -> None:
@@ -187,7 +191,7 @@ class _Eta:
         eta = 0.0 if frac >= 1 else (1.0 - frac) / pace if pace > 0 else float("nan")
         end = "\n" if runs_done >= self.total else "\r"
         print(
-            f"  sweep {label:24s} {runs_done}/{self.total} runs finished{self.where} "
+            f"  {self.stage}sweep {label:24s} {runs_done}/{self.total} runs finished{self.where} "
             f"({100 * frac:5.1f}% of run-steps, {el:7.1f} s, ETA {eta:7.1f} s)",
             end=end,
             file=sys.stderr,
@@ -248,7 +252,7 @@ def run_sweep(
     chunk: int | None = None,
     devices: Any = None,
     dtype: Any = None,
-    progress: bool | Callable[[str, int, int], None] = False,
+    progress: bool | str | Callable[[str, int, int], None] = False,
     checkpoint: str | Path | None = None,
     resume: bool = False,
 ) -> SweepResult:
@@ -276,7 +280,8 @@ def run_sweep(
             or a list of devices (single process only).
         dtype: float dtype (default: JAX's default float; enable float64 first).
         progress: ``True`` for a progress line with an ETA on stderr (runs finished out
-            of the total), or a callback ``(label, done_run_steps, total_run_steps)``.
+            of the total), a string for the same line starting with that label, or a
+            callback ``(label, done_run_steps, total_run_steps)``.
         checkpoint: a folder where each finished batch's per-run arrays are written as
             the sweep goes (:mod:`uimm_jax.studies.sweep_store`).
         resume: continue the sweep recorded in ``checkpoint``: skip its finished runs
@@ -353,8 +358,9 @@ def run_sweep(
     chunk_len = spec.chunk or _even_chunk(N, max(1000, CHUNK_RUN_STEPS // B))
     chunk_len = min(chunk_len, N)
     runs_done = int(fin.done.sum())
-    if progress is True:
-        report = _Eta(C * R, runs_done, N, jax.process_count())
+    if progress is True or isinstance(progress, str):
+        stage = progress if isinstance(progress, str) else ""
+        report = _Eta(C * R, runs_done, N, jax.process_count(), stage)
     elif callable(progress):
         report = lambda label, runs, steps: progress(label, int(steps), C * R * N)  # noqa: E731
     else:

@@ -7,8 +7,6 @@ held-out seeds; :func:`tuned_scenario` writes the tuned ``[filter]`` settings.
 
 from __future__ import annotations
 
-import sys
-import time
 from collections.abc import Mapping
 from typing import Any
 
@@ -217,33 +215,6 @@ def before_after_table(before: dict, after: dict) -> str:
     return "\n".join(lines)
 
 
-def _labelled(progress, stage: str):
-    """``progress=True`` of :func:`run_sweep` with every line labelled ``stage``.
-
-    The callable form of ``progress`` receives ``(label, run-steps done, run-steps in all)``;
-    this one prints them as one updating line on stderr, with an ETA from the pace so far.
-    """
-    if progress is not True:
-        return progress
-    start: list[float] = []
-
-    def report(label: str, done: int, total: int) -> None:
-        if not start:
-            start.append(time.perf_counter())
-        elapsed = time.perf_counter() - start[0]
-        frac = done / max(total, 1)
-        eta = (1.0 - frac) * elapsed / frac if 0.0 < frac < 1.0 else 0.0
-        print(
-            f"  {stage}: sweep {label:24s} {100 * frac:5.1f}% of run-steps "
-            f"({elapsed:7.1f} s, ETA {eta:7.1f} s)",
-            end="\n" if done >= total else "\r",
-            file=sys.stderr,
-            flush=True,
-        )
-
-    return report
-
-
 def before_after(
     before_scenario, after_scenario, extra=(), *, runs=200, seed=0, progress=False, before=None
 ):
@@ -262,14 +233,14 @@ def before_after(
             before_scenario,
             runs=runs,
             seed=seed,
-            progress=_labelled(progress, "before"),
+            progress="before" if progress is True else progress,
             cases_from=cases,
         )
     a = evaluate(
         after_scenario,
         runs=runs,
         seed=seed,
-        progress=_labelled(progress, "after"),
+        progress="after" if progress is True else progress,
         cases_from=cases,
     )
     return before_after_table(b, a), {"before": b, "after": a, "seed": seed, "runs": runs}
