@@ -329,7 +329,7 @@ def imm_filter(
     gate: float | None = None,
     return_model_means: bool = False,
     return_cov: bool = True,
-    outputs=None,
+    outputs: tuple[str, ...] | None = None,
 ) -> IMMResult:
     """Run an IMM filter over a linear-Gaussian bank (paper eqs. 15-31).
 
@@ -362,8 +362,9 @@ def imm_filter(
         An :class:`IMMResult`.
 
     Raises:
-        ValueError: on inconsistent shapes, a non-stochastic transition matrix or a
-            covariance that is not symmetric PSD; the message names the argument.
+        ValueError: on inconsistent shapes, a non-stochastic transition matrix, a
+            covariance that is not symmetric PSD or an unknown ``outputs`` name; the
+            message names the argument.
     """
     keep = _check_outputs(outputs, return_model_means, return_cov)
     prep = _prepare(
