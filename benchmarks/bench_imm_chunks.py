@@ -58,7 +58,7 @@ import jax.numpy as jnp  # noqa: E402
 
 from uimm_jax.engine.imm import imm_step  # noqa: E402
 from uimm_jax.engine.scan import as_batch_of_one, drop_batch_of_one  # noqa: E402
-from uimm_jax.studies.imm_filter import _imm_scan, _prepare  # noqa: E402
+from uimm_jax.studies.imm_filter import _check_outputs, _imm_scan, _prepare  # noqa: E402
 
 _ALIGN = 64
 _FIELDS = ("mode_probs", "log_mode_probs", "mean", "cov", "model_loglik", "loglik_increments")
@@ -239,7 +239,7 @@ def main(argv=None):
     variants = {
         "reference": lambda: ref_scan(*ref_args),
         "imm_filter": lambda: uimm_jax.imm_filter(bank, inputs=uf, measurements=yf, **kw),
-        "imm_filter's scan": lambda: _imm_scan(*prep, False, True),
+        "imm_filter's scan": lambda: _imm_scan(*prep, _check_outputs(None, False, True)),
         "chunks, compute only": lambda: full.run(copy=False),
         "chunks + copy into reused results": lambda: full.run(reused),
         "chunked imm_filter": full.run,

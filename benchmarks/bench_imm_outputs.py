@@ -29,6 +29,11 @@ all the others are kept.
     python benchmarks/bench_imm_outputs.py                 # 1e6 steps, 7 repeats; ~2 min
     python benchmarks/bench_imm_outputs.py --steps 200000 --repeat 3
     python benchmarks/bench_imm_outputs.py --leave-one-out --repeat 11   # ~4 min
+
+``--selections`` times the public call with the default outputs against
+``imm_filter(..., outputs=...)`` asking for fewer of them (session 9):
+
+    python benchmarks/bench_imm_outputs.py --selections --repeat 9       # ~3 min
 """
 
 from __future__ import annotations
@@ -117,6 +122,26 @@ def _leave_one_out(prep, public, public_no_cov) -> dict:
     return variants
 
 
+_SELECTIONS = (
+    ("mode_probs", "log_mode_probs", "mean", "health"),
+    ("mode_probs", "mean", "health"),
+    ("log_mode_probs", "mean", "health"),
+    ("mode_probs", "mean"),
+    ("mode_probs", "mean", "cov"),
+    ("mode_probs", "mean", "cov", "health"),
+)
+
+
+def _selections(bank, uf, yf, kw) -> dict:
+    def call(outputs):
+        return lambda: uimm_jax.imm_filter(bank, inputs=uf, measurements=yf, outputs=outputs, **kw)
+
+    variants = {"imm_filter (default)": (call(None), ())}
+    for sel in _SELECTIONS:
+        variants[f"imm_filter(outputs=({', '.join(sel)}))"] = (call(sel), ())
+    return variants
+
+
 def actuator_problem(steps: int):
     """``(u (N,), y (N, 3, 1), bank, kw)``: one run of ``paper_sim1_tuned``'s truth (the
     paper's UIMM, not -est) and its 4-model bank with imm_filter's keyword arguments."""
@@ -141,6 +166,7 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--reference", type=Path, default=REPO.parent / "shared" / "perf")
     ap.add_argument("--leave-one-out", action="store_true", help="see the module docstring")
+    ap.add_argument("--selections", action="store_true", help="see the module docstring")
     args = ap.parse_args(argv)
     ref = _load_reference(args.reference)
     u, y, bank, kw = actuator_problem(args.steps)
@@ -164,6 +190,8 @@ def main(argv=None):
             bank, inputs=uf, measurements=yf, return_cov=False, **kw
         )
         variants.update(_leave_one_out(prep, public, no_cov))
+    elif args.selections:
+        variants.update(_selections(bank, uf, yf, kw))
     else:
         variants.update(
             {

@@ -11,7 +11,9 @@ at 30 s and leakage at 60 s when the run is 1e6 samples long) this script times:
   the same outputs kept per step (mode probabilities, recognised set, health);
 * ``imm_filter``: the public :func:`uimm_jax.imm_filter` on the same 4-model bank (nothing
   declared), with the same transition matrix and gate (one run only), and the same with
-  ``return_cov=False`` (no combined covariance; every other output the same);
+  ``return_cov=False`` (no combined covariance; every other output the same), and with
+  ``outputs=`` the reference's own outputs (mode probabilities, mean, health) or
+  filterpy's (mode probabilities, mean, covariance);
 
 for one run of ``--steps`` samples and for ``--batch`` runs of ``--batch-steps`` samples,
 then ``imm_filter`` on random stable banks of M = 4, 8, 16, 32 models (n = m = 3) with the
@@ -136,6 +138,15 @@ def _imm_filter_no_cov_call(bank, u, y, kw):
     return uimm_jax.imm_filter(bank, inputs=u, measurements=y, return_cov=False, **kw).mode_probs
 
 
+# imm_filter(outputs=...) rows: the reference's own outputs (mode probabilities, combined
+# mean, health; it has no recognised set), and filterpy's IMMEstimator's (x, P, mu)
+_SELECTIONS = (("mode_probs", "mean", "health"), ("mode_probs", "mean", "cov"))
+
+
+def _imm_filter_outputs_call(bank, u, y, kw, outputs):
+    return uimm_jax.imm_filter(bank, inputs=u, measurements=y, outputs=outputs, **kw).mode_probs
+
+
 def _random_bank(M: int, rng) -> tuple:
     """A stable random bank of M models (n = m = 3, p = 1) and imm_filter kwargs."""
     n = 3
@@ -192,6 +203,11 @@ def main(argv=None):
                 _imm_filter_no_cov_call,
                 (bank, uf, yf, kw),
             )
+            for sel in _SELECTIONS:
+                variants[f"imm_filter (outputs={', '.join(sel)})"] = (
+                    _imm_filter_outputs_call,
+                    (bank, uf, yf, kw, sel),
+                )
         first, outs, times = _interleave(variants, args.repeat)
         base = np.median(times["reference"])
         for k in variants:

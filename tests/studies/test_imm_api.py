@@ -150,6 +150,50 @@ def test_without_cov_the_other_outputs_are_unchanged(gate):
             np.testing.assert_array_equal(getattr(lean, key), getattr(full, key), err_msg=key)
 
 
+def test_selected_outputs_are_the_default_ones_bit_for_bit():
+    """``outputs=`` computes the named fields, bit for bit the default call's, and no other.
+
+    ``mode_probs`` without ``log_mode_probs``, ``marginal_loglik`` without the increments:
+    the fields the scan keeps only for them.  The problem and the default call are
+    ``test_without_cov_the_other_outputs_are_unchanged``'s (compiled there).
+    """
+    outputs = ("model_mean", "mode_probs", "cov", "marginal_loglik")
+    problem = with_missing(make_linear_problem(4, M=3, n=3, m=2, p=1, N=200), [5, 6], channel=1)
+    bank = uimm_jax.LinearGaussianBank(
+        problem["A"], problem["B"], problem["C"], problem["Q"], problem["R"]
+    )
+    args = (bank, problem["transition"], problem["mu0"], problem["x0"], problem["P0"])
+    data = (problem["inputs"], problem["measurements"])
+    full = uimm_jax.imm_filter(*args, *data, gate=9.0, return_model_means=True)
+    some = uimm_jax.imm_filter(*args, *data, gate=9.0, outputs=outputs)
+    assert isinstance(some, uimm_jax.IMMResult)
+    for key in full._fields:
+        if key in outputs:
+            np.testing.assert_array_equal(getattr(some, key), getattr(full, key), err_msg=key)
+        else:
+            assert getattr(some, key) is None, key
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(outputs=("mean", "covariance")), "unknown names \\['covariance'\\]"),
+        (dict(outputs="mean"), "tuple of field names"),
+        (dict(outputs=()), "no name given"),
+        (dict(outputs=("mean",), return_cov=False), "either outputs or return_cov"),
+        (dict(outputs=("mean",), return_model_means=True), "either outputs or return_cov"),
+    ],
+)
+def test_bad_outputs_are_refused_by_name(kwargs, match):
+    problem = make_linear_problem(0, N=5)
+    bank = uimm_jax.LinearGaussianBank(
+        problem["A"], problem["B"], problem["C"], problem["Q"], problem["R"]
+    )
+    args = (bank, problem["transition"], problem["mu0"], problem["x0"], problem["P0"])
+    with pytest.raises(ValueError, match=match):
+        uimm_jax.imm_filter(*args, problem["inputs"], problem["measurements"], **kwargs)
+
+
 def test_shared_initial_mean_and_cov_broadcast():
     problem = make_linear_problem(8)
     M = problem["A"].shape[0]

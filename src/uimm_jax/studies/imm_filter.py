@@ -71,6 +71,9 @@ class IMMResult(NamedTuple):
         marginal_loglik: scalar ``log p(y_0..y_{N-1})``.
         health: ``(N,)`` int32 bit flags (see :mod:`uimm_jax.engine.imm`).
         model_mean: ``(N, M, n)`` per-model posterior means, or ``None``.
+
+    A field left out by :func:`imm_filter`'s ``outputs`` (or its ``return_cov`` and
+    ``return_model_means`` flags) is ``None``.
     """
 
     mode_probs: jax.Array
@@ -106,11 +109,34 @@ def _matrix_dynamics(identity_C: int | None) -> MatrixBankDynamics:
     return MatrixBankDynamics(np.eye(identity_C), np.zeros(identity_C))
 
 
-@functools.partial(jax.jit, static_argnames=("dyn", "gate", "keep_model_mean", "keep_cov"))
-def _imm_scan(dyn, cache, params, state0, inputs, measurements, gate, keep_model_mean, keep_cov):
+# What the scan writes per step for each field of IMMResult.  ``mode_probs`` is the ``exp``
+# of the log mode probabilities after the scan when those are kept too, else the ``exp``
+# inside the scan (bit for bit the same, without a second (N, M) buffer: 1.09x against
+# 1.21x the reference with ``mean`` and ``health``; ``benchmarks/README.md``);
+# ``marginal_loglik`` is the sum of the increments.
+_SCAN_FIELD = {
+    "mode_probs": "log_mode_probs",
+    "log_mode_probs": "log_mode_probs",
+    "mean": "mean",
+    "cov": "cov",
+    "model_loglik": "model_loglik",
+    "loglik_increments": "loglik_increment",
+    "marginal_loglik": "loglik_increment",
+    "health": "health",
+    "model_mean": "model_mean",
+}
+
+
+@functools.partial(jax.jit, static_argnames=("dyn", "gate", "keep"))
+def _imm_scan(dyn, cache, params, state0, inputs, measurements, gate, keep):
+    """The filter over the whole run: a dict of the IMMResult fields named in ``keep``."""
     # One run scanned as a batch of one: twice as fast on XLA CPU (engine.scan); the
     # reshapes happen inside this compiled function, where they cost nothing.
     state0, inputs, measurements = as_batch_of_one((state0, inputs, measurements))
+    exp_inside = "mode_probs" in keep and "log_mode_probs" not in keep
+    scanned = tuple(
+        dict.fromkeys(_SCAN_FIELD[k] for k in keep if not (exp_inside and k == "mode_probs"))
+    )
 
     def body(state, uy):
         u, y = uy
@@ -122,23 +148,46 @@ def _imm_scan(dyn, cache, params, state0, inputs, measurements, gate, keep_model
             u,
             y,
             gate=gate,
-            with_cov=keep_cov,
+            with_cov="cov" in scanned,
         )
-        out = (
-            info.log_mode_probs,
-            info.mean,
-            info.cov if keep_cov else None,
-            info.model_loglik,
-            info.loglik_increment,
-            info.health,
-        )
-        if keep_model_mean:
-            out = out + (new.mean,)
+        fields = info._asdict() | {"model_mean": new.mean}
+        out = {k: fields[k] for k in scanned}
+        if exp_inside:
+            out["mode_probs"] = jnp.exp(info.log_mode_probs)
         return new, out
 
     _, out = jax.lax.scan(body, state0, (inputs, measurements))
     out = drop_batch_of_one(out)
-    return (jnp.exp(out[0]),) + out
+    res = {k: out[_SCAN_FIELD[k]] for k in keep if k not in ("mode_probs", "marginal_loglik")}
+    if "mode_probs" in keep:
+        res["mode_probs"] = out["mode_probs"] if exp_inside else jnp.exp(out["log_mode_probs"])
+    if "marginal_loglik" in keep:
+        res["marginal_loglik"] = jnp.sum(out["loglik_increment"])
+    if "model_mean" in keep:
+        res["model_mean"] = jnp.moveaxis(out["model_mean"], -1, 1)
+    return res
+
+
+def _check_outputs(outputs, return_model_means: bool, return_cov: bool) -> tuple[str, ...]:
+    """The IMMResult fields to compute: ``outputs`` checked, or the flags' default set."""
+    if outputs is None:
+        drop = ("cov",) * (not return_cov) + ("model_mean",) * (not return_model_means)
+        return tuple(k for k in IMMResult._fields if k not in drop)
+    if return_model_means or not return_cov:
+        raise ValueError(
+            "outputs: give either outputs or return_cov/return_model_means, not both "
+            "(name 'cov' and 'model_mean' in outputs instead)"
+        )
+    if isinstance(outputs, str):
+        raise ValueError(f"outputs: expected a tuple of field names, got the string {outputs!r}")
+    names = tuple(outputs)
+    bad = [k for k in names if k not in IMMResult._fields]
+    if bad or not names:
+        raise ValueError(
+            f"outputs: {'unknown names ' + repr(bad) if bad else 'no name given'}; "
+            f"choose among {IMMResult._fields}"
+        )
+    return tuple(k for k in IMMResult._fields if k in names)  # IMMResult's order
 
 
 class _Prepared(NamedTuple):
@@ -280,6 +329,7 @@ def imm_filter(
     gate: float | None = None,
     return_model_means: bool = False,
     return_cov: bool = True,
+    outputs: tuple[str, ...] | None = None,
 ) -> IMMResult:
     """Run an IMM filter over a linear-Gaussian bank (paper eqs. 15-31).
 
@@ -299,29 +349,27 @@ def imm_filter(
             ``None`` and skips its arithmetic and its ``n * n`` floats per step, the rest
             unchanged (bit for bit): 1.25-1.31x instead of 1.40-1.45x the engine issue's
             reference step on the actuator bank at 1e6 steps (``benchmarks/README.md``).
+        outputs: optional tuple of the :class:`IMMResult` fields to compute, e.g.
+            ``("mode_probs", "mean")``; the others are ``None``, and what they alone need
+            is neither computed nor stored.  Every field returned is bit for bit the one
+            the default call returns.  ``None`` (the default) returns every field but
+            ``model_mean`` (with ``return_cov`` and ``return_model_means`` as above); give
+            either ``outputs`` or those two flags.  ``("mode_probs", "mean", "health")``
+            measured 1.1-1.2x the engine issue's reference step on the actuator bank at
+            1e6 steps, against 1.5x for the default (``benchmarks/README.md``).
 
     Returns:
         An :class:`IMMResult`.
 
     Raises:
-        ValueError: on inconsistent shapes, a non-stochastic transition matrix or a
-            covariance that is not symmetric PSD; the message names the argument.
+        ValueError: on inconsistent shapes, a non-stochastic transition matrix, a
+            covariance that is not symmetric PSD or an unknown ``outputs`` name; the
+            message names the argument.
     """
+    keep = _check_outputs(outputs, return_model_means, return_cov)
     prep = _prepare(
         bank, transition, initial_mode_probs, initial_mean, initial_cov, inputs, measurements, gate
     )
     warn_if_slow()
-    mode_probs, *out = _imm_scan(*prep, return_model_means, return_cov)
-    log_mu, mean, cov, mll, inc, health = out[:6]
-    model_mean = jnp.moveaxis(out[6], -1, 1) if return_model_means else None
-    return IMMResult(
-        mode_probs=mode_probs,
-        log_mode_probs=log_mu,
-        mean=mean,
-        cov=cov,
-        model_loglik=mll,
-        loglik_increments=inc,
-        marginal_loglik=jnp.sum(inc),
-        health=health,
-        model_mean=model_mean,
-    )
+    out = _imm_scan(*prep, keep)
+    return IMMResult(**{k: out.get(k) for k in IMMResult._fields})
