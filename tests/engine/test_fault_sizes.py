@@ -474,6 +474,37 @@ def test_gathered_cache_rebuild_equals_the_whole_batch_rebuild():
 @pytest.mark.slow
 @pytest.mark.skipif(
     not os.environ.get("UIMM_JAX_SLOW_TESTS"),
+    reason="set UIMM_JAX_SLOW_TESTS=1 (5-8 s: two compiles of a rebuild; it checks "
+    "uimm_est.REBUILD_OWN, which is off by default)",
+)
+def test_own_fault_rebuild_equals_the_dense_rebuild_with_nothing_declared():
+    # uimm_est.REBUILD_OWN's cache of a bank with D = {}: each hypothesis derived in its
+    # own fault only.  The primal bit for bit, the used derivatives to rounding, and exact
+    # zeros where a model does not hold the fault (as the dense form gives them).
+    import jax
+    import jax.numpy as jnp
+
+    diag = _est_setup().diagnoser
+    F, M, R = 3, 4, 6
+    a0 = jnp.asarray(np.random.default_rng(5).uniform(0.05, 3.0, (F, M, R)))
+    sets = diag.model_sets(jnp.zeros((F, R), bool))
+    dense = jax.jit(diag.aug.prepare)(sets, a0)
+    own = jax.jit(diag.aug.prepare_own)(sets, a0)
+    for a, b in zip(jax.tree.leaves(own.base), jax.tree.leaves(dense.base), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    for k in range(F):
+        used = np.asarray(sets[k])  # (M, R): model k + 1 only
+        assert used[k + 1].all() and used.sum() == R
+        for a, b in zip(jax.tree.leaves(own.jac[k]), jax.tree.leaves(dense.jac[k]), strict=True):
+            a, b = np.asarray(a), np.asarray(b)
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.max(np.abs(b)))
+            assert np.all(a[..., ~used] == 0.0) and np.all(b[..., ~used] == 0.0)
+            assert np.max(np.abs(b[..., used])) > 0.0
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(
+    not os.environ.get("UIMM_JAX_SLOW_TESTS"),
     reason="set UIMM_JAX_SLOW_TESTS=1 (22 s: two compiles of a 40-run step; the gathering "
     "itself is checked by test_gathered_cache_rebuild_equals_the_whole_batch_rebuild)",
 )

@@ -25,6 +25,7 @@ cache gives the constant ``H = [C, 0]``, applied by slicing (``_block.selection`
 
 from __future__ import annotations
 
+import functools
 from typing import Any, NamedTuple, final
 
 import jax
@@ -78,6 +79,10 @@ class AugmentedDynamics:
         self.n = int(n)
         self.F = table.num_faults
 
+    def _cache_of(self, sets: jax.Array, a: jax.Array):
+        """The base cache of fault sets ``sets`` at magnitudes ``a`` (differentiable in ``a``)."""
+        return self.base.prepare(thetas_for_magnitudes(self.table, sets, a, a.dtype))
+
     def prepare(self, sets: jax.Array, a0: jax.Array) -> AugCache:
         """The cache of fault sets ``(F, *batch)`` at reference magnitudes ``(F, *batch)``.
 
@@ -86,10 +91,7 @@ class AugmentedDynamics:
         separate ``jvp`` calls (docs/faults.md, "Cost").
         """
         dtype = a0.dtype
-
-        def cache_of(a):
-            return self.base.prepare(thetas_for_magnitudes(self.table, sets, a, dtype))
-
+        cache_of = functools.partial(self._cache_of, sets)
         tangents = jnp.broadcast_to(
             jnp.asarray(np.eye(self.F), dtype).reshape((self.F,) * 2 + (1,) * (a0.ndim - 1)),
             (self.F,) + a0.shape,
@@ -99,6 +101,34 @@ class AugmentedDynamics:
         )
         jac = tuple(jax.tree.map(lambda leaf, k=k: leaf[k], jac) for k in range(self.F))
         return AugCache(base, jac, a0, sets)
+
+    def prepare_own(self, sets: jax.Array, a0: jax.Array) -> AugCache:
+        """:meth:`prepare` for banks whose model ``k + 1`` holds fault ``k`` alone.
+
+        That is the bank of a declared set ``D = {}`` (model 0 nominal): the derivative in
+        ``a_k`` is then zero but for model ``k + 1``, so each of the ``F`` tangents is
+        pushed through model ``k + 1`` only (``F`` model-tangents instead of ``F (F + 1)``),
+        and the others are exact zeros, as :meth:`prepare` gives them.  The caller
+        guarantees the sets.
+        """
+        base = self._cache_of(sets, a0)
+        # Models 1..F at once, model k + 1 along its own a_k: a constant tangent.
+        eye = np.eye(self.F).reshape((self.F,) * 2 + (1,) * (a0.ndim - 2))
+        t = jnp.broadcast_to(jnp.asarray(eye, a0.dtype), a0[:, 1:].shape)
+        own_sets = functools.partial(self._cache_of, sets[:, 1:])
+        _, d = jax.jvp(own_sets, (a0[:, 1:],), (t,))
+        axis = lambda leaf: leaf.ndim - a0.ndim + 1  # the model axis of a cache leaf
+        jac = []
+        for k in range(self.F):
+
+            def place(leaf, k=k):  # model k + 1's derivative, exact zeros elsewhere
+                own = jax.lax.slice_in_dim(leaf, k, k + 1, axis=axis(leaf))
+                z = jnp.zeros_like(own)
+                parts = [z] * (k + 1) + [own] + [z] * (self.F - k - 1)
+                return jnp.concatenate(parts, axis=axis(leaf))
+
+            jac.append(jax.tree.map(place, d))
+        return AugCache(base, tuple(jac), a0, sets)
 
     def _expanded(self, cache: AugCache, a: jax.Array):
         da = jnp.where(cache.use, a - cache.a0, 0.0)
