@@ -473,9 +473,9 @@ REBUILD_GROUPS = (8, 32)
 
 REBUILD_OWN = False
 """Rebuild a run with nothing declared in the cheaper own-fault form
-(:meth:`UIMMEstDiagnoser._fresh`; read when the step is traced).  Off: measured 9 % faster
-at 64 runs and 3 % at one run, but the compile of a 64-run step takes 3x as long and the
-outputs move in the last bits (mode probabilities by up to 1e-10; docs/faults.md, "Cost",
+(:meth:`UIMMEstDiagnoser._fresh`; read when the step is traced).  Off: measured 7-9 % faster
+at 64 runs and 3-7 % at one run, but the compile of a 64-run step takes 3x as long and the
+outputs move in the last bits (mode probabilities by up to 1.3e-10; docs/faults.md, "Cost",
 session 9)."""
 
 
