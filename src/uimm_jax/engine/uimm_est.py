@@ -84,6 +84,12 @@ def _gap_cap(s: EstSettings) -> int:
     return max(*gaps, s.settle_steps if s.walk_settled else 0)
 
 
+def _newest(declared: jax.Array, since: jax.Array) -> jax.Array:
+    """``(F, *runs)``: the declared fault(s) of the smallest age ``since`` (``walk_settled``)."""
+    age = jnp.where(declared, since, jnp.iinfo(jnp.int32).max)
+    return declared & (age == jnp.min(age, axis=0))
+
+
 def _own_slots(F: int, nd: int) -> np.ndarray:
     """``(F, F + 1, 1 x nd)`` bool: slot ``j + 1`` is fault ``j``'s own hypothesis."""
     own = np.concatenate([np.zeros((F, 1), bool), np.eye(F, dtype=bool)], axis=1)
@@ -272,11 +278,17 @@ class UIMMEstDiagnoser(Diagnoser):
         every model's variance of ``a`` before the step (``Q`` stays one matrix).  With
         ``walk_rel_single`` only while no other fault is declared: a second fault can make
         the first weakly observable (valve wear under air in oil), and a faster walk then
-        only adds error (docs/faults.md, "Ramps").  Adds a PSD matrix.
+        only adds error (docs/faults.md, "Ramps").  With ``walk_rel_newest`` (and
+        ``walk_settled``, whose ``since`` is a declared fault's age) it also acts on the
+        fault declared last while it is younger than ``settle_steps``: a second fault that
+        still grows is followed as the first was (docs/faults.md, "Session 9: the second
+        fault's walk").  Adds a PSD matrix.
         """
         n, s = self.dyn.n, self.settings
         sd = jnp.maximum(s.walk, s.walk_rel * jnp.abs(st.mean[n:, 0]))  # (F, *runs)
         grow = declared & (jnp.sum(declared, axis=0) == 1) if s.walk_rel_single else declared
+        if s.walk_settled and s.walk_rel_newest:  # also the fault declared last (``since``)
+            grow = grow | _newest(declared, since)
         if s.walk_settled:  # a settled fault walks at ``walk_settled`` instead (``step``)
             grow = grow & (since < s.settle_steps)
         extra = jnp.where(grow, sd**2 - s.walk**2, 0.0)[:, None]  # (F, 1, *runs)
