@@ -84,6 +84,13 @@ def _gap_cap(s: EstSettings) -> int:
     return max(*gaps, s.settle_steps if s.walk_settled else 0)
 
 
+def _floor_mean(s: EstSettings, any_decl: jax.Array):
+    """An undeclared hypothesis' floor: ``post_floor_mean`` (if set) while a fault is declared."""
+    if s.post_floor_mean <= 0:
+        return s.floor_mean
+    return jnp.where(any_decl, s.post_floor_mean, s.floor_mean)
+
+
 def _newest(declared: jax.Array, since: jax.Array) -> jax.Array:
     """``(F, *runs)``: the declared fault(s) of the smallest age ``since`` (``walk_settled``)."""
     age = jnp.where(declared, since, jnp.iinfo(jnp.int32).max)
@@ -237,7 +244,7 @@ class UIMMEstDiagnoser(Diagnoser):
         floor_gap = s.floor_gap
         if s.post_floor_gap > 0:
             floor_gap = jnp.where(any_decl, s.post_floor_gap, s.floor_gap)
-        held = (own_mean <= s.floor_mean) & (since >= floor_gap)  # held at its floor
+        held = (own_mean <= _floor_mean(s, any_decl)) & (since >= floor_gap)  # at its floor
         live = ~low & ~held  # (F, *runs)
         restart = ~declared & ~live
         since = jnp.where(restart, 1, jnp.minimum(since + 1, _gap_cap(s)))
@@ -260,13 +267,14 @@ class UIMMEstDiagnoser(Diagnoser):
         The hypothesis is "fault j is present": without the bound it would settle on
         nominal in fault-free data (a copy of model 0 that keeps a share of the
         probability) and be slow to follow a fault that appears.
+        While a fault is declared the bound is ``post_floor_mean`` if set: a challenger
+        then follows a second fault from a smaller size (docs/faults.md, "Session 9").
         Raising a variance adds a PSD matrix (the covariance stays PSD).
         """
         n, F, s = self.dyn.n, self.num_faults, self.settings
         hyp = (~declared)[:, None] & _own_slots(F, declared.ndim - 1)  # (F, M, *runs)
-        mean = st.mean.at[n:].set(
-            jnp.where(hyp, jnp.maximum(st.mean[n:], s.floor_mean), st.mean[n:])
-        )
+        floor = _floor_mean(s, jnp.any(declared, axis=0))
+        mean = st.mean.at[n:].set(jnp.where(hyp, jnp.maximum(st.mean[n:], floor), st.mean[n:]))
         var = _mag_var(st.cov, n)
         add = jnp.where(hyp, jnp.maximum(s.floor_sd**2 - var, 0.0), 0.0)
         return st._replace(mean=mean, cov=_add_mag_var(st.cov, n, add))

@@ -59,6 +59,8 @@ class EstSettings(NamedTuple):
         walk_rel_newest: with ``walk_settled``, ``walk_rel`` also acts on the fault
             declared last while it is younger than ``settle_steps``, whatever else is
             declared (a second fault still growing; docs/faults.md, "Session 9").
+        post_floor_mean: ``floor_mean`` while a fault is declared (0: ``floor_mean``), so
+            that a challenger can follow a second fault from a smaller size.
     """
 
     walk: float = 1e-3
@@ -83,6 +85,7 @@ class EstSettings(NamedTuple):
     post_floor_gap: int = 0
     retract_hold: int = 0
     walk_rel_newest: bool = False
+    post_floor_mean: float = 0.0
 
 
 class EstState(NamedTuple):
