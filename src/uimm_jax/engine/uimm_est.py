@@ -26,7 +26,8 @@ declared fault's walk grows with its size while it is the only declared fault
 (``walk_rel``, ``walk_rel_single``; docs/faults.md, "Ramps").
 While a fault is declared, ``walk_settled``, ``post_gap``, ``post_floor_gap`` and
 ``retract_hold`` (off by default; docs/faults.md, "Session 8: after a declaration")
-change these rules.
+change these rules, and ``walk_rel_newest`` and ``post_floor_mean`` (off by default;
+docs/faults.md, "Session 9") those for a second fault.
 An undeclared hypothesis' own magnitude is kept ``>= floor_mean`` (and its standard
 deviation ``>= floor_sd``), so that it means "a fault" and does not settle on nominal in
 fault-free data; ``floor_mean`` is below ``declare_min`` so that the bound never decides
