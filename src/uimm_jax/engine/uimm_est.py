@@ -26,7 +26,8 @@ declared fault's walk grows with its size while it is the only declared fault
 (``walk_rel``, ``walk_rel_single``; docs/faults.md, "Ramps").
 While a fault is declared, ``walk_settled``, ``post_gap``, ``post_floor_gap`` and
 ``retract_hold`` (off by default; docs/faults.md, "Session 8: after a declaration")
-change these rules.
+change these rules, and ``walk_rel_newest`` and ``post_floor_mean`` (off by default;
+docs/faults.md, "Session 9") those for a second fault.
 An undeclared hypothesis' own magnitude is kept ``>= floor_mean`` (and its standard
 deviation ``>= floor_sd``), so that it means "a fault" and does not settle on nominal in
 fault-free data; ``floor_mean`` is below ``declare_min`` so that the bound never decides
@@ -82,6 +83,19 @@ def _gap_cap(s: EstSettings) -> int:
     """The largest restart gap of ``s`` (``since`` counts up to it)."""
     gaps = (s.restart_gap, s.floor_gap, s.post_gap, s.post_floor_gap)
     return max(*gaps, s.settle_steps if s.walk_settled else 0)
+
+
+def _floor_mean(s: EstSettings, any_decl: jax.Array):
+    """An undeclared hypothesis' floor: ``post_floor_mean`` (if set) while a fault is declared."""
+    if s.post_floor_mean <= 0:
+        return s.floor_mean
+    return jnp.where(any_decl, s.post_floor_mean, s.floor_mean)
+
+
+def _newest(declared: jax.Array, since: jax.Array) -> jax.Array:
+    """``(F, *runs)``: the declared fault(s) of the smallest age ``since`` (``walk_settled``)."""
+    age = jnp.where(declared, since, jnp.iinfo(jnp.int32).max)
+    return declared & (age == jnp.min(age, axis=0))
 
 
 def _own_slots(F: int, nd: int) -> np.ndarray:
@@ -231,7 +245,7 @@ class UIMMEstDiagnoser(Diagnoser):
         floor_gap = s.floor_gap
         if s.post_floor_gap > 0:
             floor_gap = jnp.where(any_decl, s.post_floor_gap, s.floor_gap)
-        held = (own_mean <= s.floor_mean) & (since >= floor_gap)  # held at its floor
+        held = (own_mean <= _floor_mean(s, any_decl)) & (since >= floor_gap)  # at its floor
         live = ~low & ~held  # (F, *runs)
         restart = ~declared & ~live
         since = jnp.where(restart, 1, jnp.minimum(since + 1, _gap_cap(s)))
@@ -254,13 +268,14 @@ class UIMMEstDiagnoser(Diagnoser):
         The hypothesis is "fault j is present": without the bound it would settle on
         nominal in fault-free data (a copy of model 0 that keeps a share of the
         probability) and be slow to follow a fault that appears.
+        While a fault is declared the bound is ``post_floor_mean`` if set: a challenger
+        then follows a second fault from a smaller size (docs/faults.md, "Session 9").
         Raising a variance adds a PSD matrix (the covariance stays PSD).
         """
         n, F, s = self.dyn.n, self.num_faults, self.settings
         hyp = (~declared)[:, None] & _own_slots(F, declared.ndim - 1)  # (F, M, *runs)
-        mean = st.mean.at[n:].set(
-            jnp.where(hyp, jnp.maximum(st.mean[n:], s.floor_mean), st.mean[n:])
-        )
+        floor = _floor_mean(s, jnp.any(declared, axis=0))
+        mean = st.mean.at[n:].set(jnp.where(hyp, jnp.maximum(st.mean[n:], floor), st.mean[n:]))
         var = _mag_var(st.cov, n)
         add = jnp.where(hyp, jnp.maximum(s.floor_sd**2 - var, 0.0), 0.0)
         return st._replace(mean=mean, cov=_add_mag_var(st.cov, n, add))
@@ -272,11 +287,17 @@ class UIMMEstDiagnoser(Diagnoser):
         every model's variance of ``a`` before the step (``Q`` stays one matrix).  With
         ``walk_rel_single`` only while no other fault is declared: a second fault can make
         the first weakly observable (valve wear under air in oil), and a faster walk then
-        only adds error (docs/faults.md, "Ramps").  Adds a PSD matrix.
+        only adds error (docs/faults.md, "Ramps").  With ``walk_rel_newest`` (and
+        ``walk_settled``, whose ``since`` is a declared fault's age) it also acts on the
+        fault declared last while it is younger than ``settle_steps``: a second fault that
+        still grows is followed as the first was (docs/faults.md, "Session 9: the second
+        fault's walk").  Adds a PSD matrix.
         """
         n, s = self.dyn.n, self.settings
         sd = jnp.maximum(s.walk, s.walk_rel * jnp.abs(st.mean[n:, 0]))  # (F, *runs)
         grow = declared & (jnp.sum(declared, axis=0) == 1) if s.walk_rel_single else declared
+        if s.walk_settled and s.walk_rel_newest:  # also the fault declared last (``since``)
+            grow = grow | _newest(declared, since)
         if s.walk_settled:  # a settled fault walks at ``walk_settled`` instead (``step``)
             grow = grow & (since < s.settle_steps)
         extra = jnp.where(grow, sd**2 - s.walk**2, 0.0)[:, None]  # (F, 1, *runs)

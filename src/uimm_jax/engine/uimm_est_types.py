@@ -56,6 +56,11 @@ class EstSettings(NamedTuple):
         post_floor_gap: steps between two restarts of a hypothesis held at the floor
             while a fault is declared (0: ``floor_gap``; docs/faults.md, "Session 8").
         retract_hold: samples a retraction rule must hold (0: the filter's ``hold``).
+        walk_rel_newest: with ``walk_settled``, ``walk_rel`` also acts on the fault
+            declared last while it is younger than ``settle_steps``, whatever else is
+            declared (a second fault still growing; docs/faults.md, "Session 9").
+        post_floor_mean: ``floor_mean`` while a fault is declared (0: ``floor_mean``), so
+            that a challenger can follow a second fault from a smaller size.
     """
 
     walk: float = 1e-3
@@ -79,6 +84,8 @@ class EstSettings(NamedTuple):
     settle_steps: int = 0
     post_floor_gap: int = 0
     retract_hold: int = 0
+    walk_rel_newest: bool = False
+    post_floor_mean: float = 0.0
 
 
 class EstState(NamedTuple):

@@ -1,0 +1,68 @@
+"""uimm-est with a second fault: the settings of docs/faults.md, "Session 9" (off by default)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from _robustness_helpers import short_dict
+from uimm_jax.scenario.parse import parse_scenario
+
+
+def _diag():
+    from uimm_jax.studies.run import setup_scenario
+
+    d = short_dict(2, duration=0.3)
+    d["filter"].pop("initial_mode_probs")  # written for "uimm": the default for "uimm-est"
+    d["events"] = [{"time": 0.2, "fault": "valve_wear"}]
+    return setup_scenario(parse_scenario(d), "uimm-est").diagnoser
+
+
+def test_walk_rel_newest_grows_the_walk_of_the_fault_declared_last_while_young():
+    """With two faults declared, ``walk_rel_single`` grows neither walk; with
+    ``walk_rel_newest`` (and ``walk_settled``) the younger fault's walk grows, until it is
+    ``settle_steps`` old."""
+    import jax.numpy as jnp
+
+    from uimm_jax.engine.imm import IMMState
+
+    diag = _diag()
+    n, F, M = diag.dyn.n, diag.num_faults, diag.num_models
+    base = diag.settings._replace(walk_settled=3e-4, settle_steps=100)
+    mean = np.zeros((n + F, M, 3))
+    mean[n : n + F, 0] = 2.0  # model 0's estimates
+    cov = np.broadcast_to(np.eye(n + F)[..., None, None] * 0.01, (n + F, n + F, M, 3)).copy()
+    state = IMMState(jnp.asarray(mean), jnp.asarray(cov), jnp.zeros((M, 3)))
+    # runs: valve wear (age 150) + air in oil (age 20 / 120); air in oil alone (age 20)
+    declared = jnp.asarray([[True, True, False], [False, False, False], [True, True, True]])
+    since = jnp.asarray([[150, 150, 0], [0, 0, 0], [20, 120, 20]], jnp.int32)
+    extra = (base.walk_rel * 2.0) ** 2 - base.walk**2
+    assert base.walk_rel_single and extra > 0
+    for newest, grown in ((False, [(2, 2)]), (True, [(2, 0), (2, 2)])):
+        d2 = dataclasses.replace(diag, settings=base._replace(walk_rel_newest=newest))
+        got = np.asarray(d2._walk_rel(state, declared, since).cov) - cov
+        want = np.zeros_like(cov)
+        for j, r in grown:
+            want[n + j, n + j, :, r] = extra  # every model's copy
+        np.testing.assert_allclose(got, want, atol=1e-18)
+
+
+def test_post_floor_mean_bounds_a_challenger_only_while_a_fault_is_declared():
+    import jax.numpy as jnp
+
+    from uimm_jax.engine.imm import IMMState
+
+    diag = _diag()
+    n, F, M = diag.dyn.n, diag.num_faults, diag.num_models
+    mean = np.zeros((n + F, M, 2))
+    cov = np.broadcast_to(np.eye(n + F)[..., None, None] * 0.01, (n + F, n + F, M, 2)).copy()
+    state = IMMState(jnp.asarray(mean), jnp.asarray(cov), jnp.zeros((M, 2)))
+    declared = jnp.asarray([[True, False], [False, False], [False, False]])  # run 0: valve wear
+    s = diag.settings
+    for post, want in ((0.0, [s.floor_mean] * 2), (0.02, [0.02, s.floor_mean])):
+        d2 = dataclasses.replace(diag, settings=s._replace(post_floor_mean=post))
+        got = np.asarray(d2._floor(state, declared).mean)
+        np.testing.assert_allclose(got[n + 2, 3], want)  # air in oil's own hypothesis (slot 3)
+        np.testing.assert_allclose(got[n + 1, 2], want)  # leakage's (slot 2)
+        np.testing.assert_allclose(got[n, 1], [0.0, s.floor_mean])  # declared: untouched
