@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from uimm_jax.engine import _block as bk
-from uimm_jax.engine.kalman import _predict_cov, kf_update
+from uimm_jax.engine.kalman import _predict_cov, kf_predict_cov, kf_update
 
 __all__ = [
     "HEALTH_COV_REPAIRED",
@@ -349,7 +349,9 @@ def imm_step(
     x0, P0, log_c = mix(state.mean, state.cov, state.log_mode_probs, params.log_transition)
     x_pred, F = dyn.predict(cache, x0, u[:, None])
     # A dynamics object whose Jacobian has a structure may predict the covariance itself.
-    predict_cov = getattr(dyn, "predict_cov", _predict_cov)
+    # (A constant NumPy F keeps the block algebra's trace-time shortcuts: no custom_vjp.)
+    default = kf_predict_cov if isinstance(F, np.ndarray) else _predict_cov
+    predict_cov = getattr(dyn, "predict_cov", default)
     P_pred = predict_cov(F, P0, bk.align(params.Q, 2, nb))
     y_pred, H = dyn.observe(cache, x_pred)
     floor = float(jnp.finfo(dtype).tiny) ** 0.5
