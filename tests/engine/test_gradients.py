@@ -1,7 +1,8 @@
 """Reverse mode of the engine's hand-written adjoints against textbook references.
 
 The measurement update (:func:`uimm_jax.engine.kalman.kf_update`), the mixing
-(:func:`uimm_jax.engine.imm.mix`) and :func:`uimm_jax.engine._block.mirror_lower` carry
+(:func:`uimm_jax.engine.imm.mix`), the predicted covariance and the time loop's
+``log_normalize`` and :func:`uimm_jax.engine._block.mirror_lower` carry
 their own ``custom_vjp``; here their
 gradients are compared with JAX's reverse mode through plain formulas: the Kalman update
 written with ``jnp.linalg.solve`` and ``slogdet`` (Joseph form, missing channels and gate
@@ -204,6 +205,51 @@ def test_mirror_lower_gradient_equals_that_of_tril_plus_transpose():
     g = jax.grad(lambda a: jnp.sum(w * bk.mirror_lower(a)))(a)
     g_ref = jax.grad(lambda a: jnp.sum(w * ref(a)))(a)
     np.testing.assert_allclose(np.asarray(g), np.asarray(g_ref), rtol=1e-15)
+
+
+@pytest.mark.parametrize("perturbed_F", [False, True])
+def test_predicted_covariance_gradient_equals_reverse_mode_through_kf_predict_cov(perturbed_F):
+    # F shared by the bank (a linear plant's Ad, no tangent) or per model with a tangent
+    # (an EKF's Jacobian), Q broadcast over the batch.
+    rng = np.random.default_rng(5)
+    n, M, B = 3, 4, 2
+    F = rng.normal(size=(n, n, M, B))
+    P = _spd(rng, n, (M, B))
+    Q = _spd(rng, n, ())[..., None, None]
+    w = rng.normal(size=(n, n, M, B))
+
+    def total(fn, F, P, Q):
+        return jnp.sum(w * fn(F, P, Q))
+
+    argnums = (0, 1, 2) if perturbed_F else (1, 2)
+    g = jax.grad(lambda *a: total(kalman._predict_cov, *a), argnums)(F, P, Q)
+    g_ref = jax.grad(lambda *a: total(kalman.kf_predict_cov, *a), argnums)(F, P, Q)
+    for a, b in zip(g, g_ref, strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-14)
+
+
+def test_log_normalize_gradient_equals_reverse_mode_through_its_formulas():
+    # Finite weights, an impossible model (-inf) and a run where every model is (the
+    # weights then pass through unchanged, the normaliser is -inf).
+    rng = np.random.default_rng(6)
+    log_w = rng.normal(size=(4, 3)) * 30.0
+    log_w[1, 0] = -np.inf
+    log_w[:, 2] = -np.inf
+    w_out, w_lse = rng.normal(size=(4, 3)), rng.normal(size=(3,))
+
+    def total(fn, log_w):
+        out, lse = fn(log_w)
+        out = jnp.where(jnp.isfinite(out), out, 0.0)
+        lse = jnp.where(jnp.isfinite(lse), lse, 0.0)
+        return jnp.sum(w_out * out) + jnp.sum(w_lse * lse)
+
+    g = np.asarray(jax.grad(lambda a: total(imm._log_normalize_vjp, a))(log_w))
+    g_ref = np.asarray(jax.grad(lambda a: total(imm.log_normalize, a))(log_w))
+    # Where every weight is -inf, reverse mode through log(0) gives NaN; the hand-written
+    # one passes the (here zero) output cotangent through.
+    assert np.all(np.isfinite(g)) and np.all(np.isnan(g_ref[:, 2]))
+    np.testing.assert_array_equal(g[:, 2], 0.0)
+    np.testing.assert_allclose(g[:, :2], g_ref[:, :2], rtol=1e-12, atol=1e-14)
 
 
 def test_imm_gradient_with_a_gate_and_masked_models_matches_central_differences():

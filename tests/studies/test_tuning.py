@@ -197,8 +197,9 @@ def test_truth_in_the_loop_equals_precomputed_truth(small):
 
 
 def test_hand_written_reverse_modes_equal_plain_reverse_mode(small, monkeypatch):
-    # The measurement update, the mixing and the UIMM hand-over carry hand-written
-    # adjoints (custom_vjp, engine/kalman.py, engine/imm.py, engine/uimm.py); with them
+    # The measurement update, the mixing, the predicted covariance, eq. 28's normalisation,
+    # the non-finite guard and the UIMM hand-over carry hand-written adjoints (custom_vjp,
+    # engine/kalman.py, engine/imm.py, engine/uimm.py); with them
     # replaced by their forward functions, JAX's own reverse mode differentiates the same
     # loss: the gradients agree through declarations, masked models and the surrogate.
     from uimm_jax.engine import imm, kalman, uimm
@@ -218,6 +219,9 @@ def test_hand_written_reverse_modes_equal_plain_reverse_mode(small, monkeypatch)
     monkeypatch.setattr(imm, "kf_update", plain_update)
     monkeypatch.setattr(imm, "_mix_pairwise", lambda *a: imm._mix_pairwise_fwd(*a)[0])
     monkeypatch.setattr(uimm, "_handover", uimm._handover_cond)
+    monkeypatch.setattr(imm, "_predict_cov", kalman.kf_predict_cov)
+    monkeypatch.setattr(imm, "_log_normalize_vjp", imm.log_normalize)
+    monkeypatch.setattr(imm, "_keep_finite", imm._keep_finite_select)
     plain = grad()
     assert np.all(np.isfinite(hand)) and np.any(hand != plain)  # the hand-written ones ran
     np.testing.assert_allclose(hand, plain, rtol=1e-10, atol=1e-12 * np.max(np.abs(plain)))

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from uimm_jax.engine import _block as bk
-from uimm_jax.engine.kalman import kf_predict_cov, kf_update
+from uimm_jax.engine.kalman import _predict_cov, kf_predict_cov, kf_update
 
 __all__ = [
     "HEALTH_COV_REPAIRED",
@@ -116,6 +116,56 @@ def log_normalize(log_w: jax.Array) -> tuple[jax.Array, jax.Array]:
     # ``log_w - lse`` would lose ``log_s`` to rounding and return probabilities summing to M.
     out = jnp.where(ok, shifted - jnp.where(ok, log_s, 0.0), log_w)
     return out, (log_s + safe)[0]
+
+
+# The time loop's log_normalize (eq. 28), with its reverse mode by hand: with p = exp(out)
+# (zero where a weight is -inf, and everywhere when all are), d out_i = d w_i - sum_k p_k
+# d w_k and d lse = sum_k p_k d w_k, so w_bar = out_bar + p (lse_bar - sum out_bar).  The
+# residual is the output alone; reverse mode through the formulas kept 10 arrays (the
+# shift, its masks, the exponentials) per step and differentiated the max-shift, whose
+# derivative is exactly zero.
+_log_normalize_vjp = jax.custom_vjp(log_normalize)
+
+
+def _log_normalize_fwd(log_w):
+    out, lse = log_normalize(log_w)
+    return (out, lse), out
+
+
+def _log_normalize_bwd(out, ct):
+    g_out, g_lse = ct
+    return (g_out + jnp.exp(out) * (g_lse - jnp.sum(g_out, axis=0)),)
+
+
+_log_normalize_vjp.defvjp(_log_normalize_fwd, _log_normalize_bwd)
+
+
+def _keep_finite_select(finite, x_new, P_new, ll, mean, cov, very_negative):
+    """The non-finite guard of :func:`imm_step`: a model keeps its previous posterior."""
+    return (
+        jnp.where(finite, x_new, mean),
+        jnp.where(finite, P_new, cov),
+        jnp.where(finite, ll, very_negative),
+    )
+
+
+# Its reverse mode keeps the (M, *runs) mask alone, where reverse mode through the selects
+# stored them broadcast to the mean's and the covariance's shapes.
+_keep_finite = jax.custom_vjp(_keep_finite_select)
+
+
+def _keep_finite_fwd(finite, x_new, P_new, ll, mean, cov, very_negative):
+    return _keep_finite_select(finite, x_new, P_new, ll, mean, cov, very_negative), finite
+
+
+def _keep_finite_bwd(finite, ct):
+    g_x, g_P, g_ll = ct
+    keep = (jnp.where(finite, g_x, 0.0), jnp.where(finite, g_P, 0.0), jnp.where(finite, g_ll, 0.0))
+    old = (jnp.where(finite, 0.0, g_x), jnp.where(finite, 0.0, g_P))
+    return (None, *keep, *old, None)
+
+
+_keep_finite.defvjp(_keep_finite_fwd, _keep_finite_bwd)
 
 
 def mix(mean: jax.Array, cov: jax.Array, log_mu: jax.Array, log_trans: jax.Array):
@@ -299,7 +349,9 @@ def imm_step(
     x0, P0, log_c = mix(state.mean, state.cov, state.log_mode_probs, params.log_transition)
     x_pred, F = dyn.predict(cache, x0, u[:, None])
     # A dynamics object whose Jacobian has a structure may predict the covariance itself.
-    predict_cov = getattr(dyn, "predict_cov", kf_predict_cov)
+    # (A constant NumPy F keeps the block algebra's trace-time shortcuts: no custom_vjp.)
+    default = kf_predict_cov if isinstance(F, np.ndarray) else _predict_cov
+    predict_cov = getattr(dyn, "predict_cov", default)
     P_pred = predict_cov(F, P0, bk.align(params.Q, 2, nb))
     y_pred, H = dyn.observe(cache, x_pred)
     floor = float(jnp.finfo(dtype).tiny) ** 0.5
@@ -323,13 +375,11 @@ def imm_step(
     )
     bad = ~finite if active is None else ~finite & active
     health |= jnp.where(jnp.any(bad, axis=0), HEALTH_NONFINITE, 0)
-    x_new = jnp.where(finite, x_new, state.mean)
-    P_new = jnp.where(finite, P_new, state.cov)
     very_negative = jnp.asarray(jnp.finfo(dtype).min / 4, dtype)
-    ll = jnp.where(finite, ll, very_negative)
+    x_new, P_new, ll = _keep_finite(finite, x_new, P_new, ll, state.mean, state.cov, very_negative)
     # Mode probabilities, eq. (28), in log space.
     log_post = ll + log_c if active is None else jnp.where(active, ll + log_c, -jnp.inf)
-    log_mu, lse = log_normalize(log_post)
+    log_mu, lse = _log_normalize_vjp(log_post)
     # If nothing is possible (every active model has c_j = 0), keep the previous probs.
     log_mu = jnp.where(jnp.isfinite(lse), log_mu, state.log_mode_probs)
     xc, Pc = combine(x_new, P_new, log_mu)

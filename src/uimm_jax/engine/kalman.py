@@ -89,6 +89,40 @@ def kf_predict_cov(F, P: jax.Array, Q: jax.Array) -> jax.Array:
     return bk.mirror_lower(bk.mmt(bk.mm(F, P), F)) + Q
 
 
+@jax.custom_vjp
+def _predict_cov(F, P: jax.Array, Q: jax.Array) -> jax.Array:
+    """:func:`kf_predict_cov` with its reverse mode by hand (the IMM step's default).
+
+    With ``X = F P F'`` and ``G`` the cotangent of ``mirror_lower(X)`` carried back to
+    ``X``: ``P_bar = F' G F``, ``F_bar = G F P' + G' F P`` and ``Q_bar = G`` (summed over
+    its broadcast axes).  The residuals are ``F``, and ``P`` only when ``F`` has a
+    tangent (an EKF's Jacobian); reverse mode through the block products stored ``F``
+    twice more, broadcast for each product.
+    """
+    return kf_predict_cov(F, P, Q)
+
+
+def _predict_cov_fwd(F, P, Q):
+    out = kf_predict_cov(F.value, P.value, Q.value)
+    shapes = (jnp.shape(F.value), jnp.shape(P.value), jnp.shape(Q.value))
+    return out, (F.value, P.value if F.perturbed else None, shapes)
+
+
+def _predict_cov_bwd(res, g):
+    F, P, (f_shape, p_shape, q_shape) = res
+    if isinstance(g, jax.custom_derivatives.SymbolicZero):
+        g = jnp.zeros(g.shape, g.dtype)
+    g_X = bk._mirror_lower_bwd(None, g)[0]  # the cotangent of X = F P F'
+    g_FP = bk.mm(g_X, F)  # of F P
+    g_F = None
+    if P is not None:
+        g_F = _sum_to(bk.mmt(g_FP, P) + bk.mtm(g_X, bk.mm(F, P)), f_shape)
+    return g_F, _sum_to(bk.mtm(F, g_FP), p_shape), _sum_to(g, q_shape)
+
+
+_predict_cov.defvjp(_predict_cov_fwd, _predict_cov_bwd, symbolic_zeros=True)
+
+
 def kf_update(
     x: jax.Array,
     P: jax.Array,

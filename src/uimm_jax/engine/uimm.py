@@ -345,23 +345,27 @@ def _handover_cond(st: IMMState, cand, dn) -> IMMState:
 def _handover(st: IMMState, cand, dn) -> IMMState:
     """The UIMM hand-over of the estimate (:meth:`UIMMDiagnoser._after_decision`).
 
-    Its reverse mode keeps only the inputs and differentiates the hand-over under a
-    ``lax.cond`` of its own, on the steps where some run declared; on the others the
-    cotangent passes through unchanged.  Reverse mode through the forward ``lax.cond``
-    stored the residuals of both branches every step (20 arrays) and ran a ``lax.cond``
-    on them in the reverse sweep.
+    Its reverse mode keeps only the mode probabilities, ``cand`` and ``dn``, and
+    differentiates the hand-over under a ``lax.cond`` of its own, on the steps where some
+    run declared; on the others the cotangent passes through unchanged.  Reverse mode
+    through the forward ``lax.cond`` stored the residuals of both branches every step
+    (20 arrays) and ran a ``lax.cond`` on them in the reverse sweep.  The means and
+    covariances are not kept: the hand-over is linear in them (selects and one-hot
+    sums), so their cotangents do not depend on their values.
     """
     return _handover_cond(st, cand, dn)
 
 
 def _handover_fwd(st, cand, dn):
-    return _handover_cond(st, cand, dn), (st, cand, dn)
+    return _handover_cond(st, cand, dn), (st.log_mode_probs, cand, dn)
 
 
 def _handover_bwd(res, ct):
-    st, cand, dn = res
+    log_mode_probs, cand, dn = res
 
     def through(ct):
+        # Linear in mean and cov: zeros in their place give the same transpose.
+        st = IMMState(jnp.zeros_like(ct.mean), jnp.zeros_like(ct.cov), log_mode_probs)
         return jax.vjp(lambda s: _handover_step(s, cand, dn), st)[1](ct)[0]
 
     return jax.lax.cond(jnp.any(dn), through, lambda ct: ct, ct), None, None
