@@ -221,10 +221,10 @@ class UIMMEstDiagnoser(Diagnoser):
             due = jnp.where(any_decl, since >= s.post_gap, due)
         elif s.gap_first_only:
             due = due | any_decl
+        lead = jnp.argmax(st.log_mode_probs, axis=0)  # (*runs,)
+        hyp = np.arange(1, F + 1).reshape((F,) + (1,) * (use.ndim - 2))
+        lead_f = (lead == hyp) & ~declared  # (F, *runs)
         if s.race_below > 0:  # a race of faults too small to declare: no restart
-            lead = jnp.argmax(st.log_mode_probs, axis=0)  # (*runs,)
-            hyp = np.arange(1, F + 1).reshape((F,) + (1,) * (use.ndim - 2))
-            lead_f = (lead == hyp) & ~declared  # (F, *runs)
             small = jnp.any(lead_f & (own_mean < s.race_below), axis=0)
             due = due & ~small
         low = (st.log_mode_probs[1:] < np.log(s.restart_below)) & due
@@ -232,6 +232,8 @@ class UIMMEstDiagnoser(Diagnoser):
         if s.post_floor_gap > 0:
             floor_gap = jnp.where(any_decl, s.post_floor_gap, s.floor_gap)
         held = (own_mean <= s.floor_mean) & (since >= floor_gap)  # held at its floor
+        if s.race_floor > 0:  # nor at the floor, in a race (docs/faults.md, "Ramps")
+            held = held & ~jnp.any(lead_f & (own_mean < s.race_floor), axis=0)
         live = ~low & ~held  # (F, *runs)
         restart = ~declared & ~live
         since = jnp.where(restart, 1, jnp.minimum(since + 1, _gap_cap(s)))
@@ -341,7 +343,7 @@ class UIMMEstDiagnoser(Diagnoser):
         def cand_set(c):
             full = self._candidate_set(c, declared)
             new = full & ~declared
-            big = est >= s.declare_min
+            big = est - s.declare_z * est_sd >= s.declare_min
             return jnp.where(jnp.any(new & ~big, axis=0), declared, full)
 
         dec = decide(
@@ -351,7 +353,7 @@ class UIMMEstDiagnoser(Diagnoser):
             state.run_model,
             state.run_len,
             params.threshold,
-            params.hold,
+            self._hold(imm_state.log_mode_probs, est, params.hold),
         )
         # Retraction: the "D - f_j" hypothesis wins (same rule), or the estimate stays low.
         top = jnp.max(imm_state.log_mode_probs, axis=0)
@@ -397,6 +399,22 @@ class UIMMEstDiagnoser(Diagnoser):
             retracted_now=any_ret,
         )
         return new_state, out
+
+    def _hold(self, log_mu: jax.Array, est: jax.Array, hold):
+        """Persistence of a declaration: ``small_hold`` if its estimate is below ``small_below``.
+
+        While a slow fault is small (a 10 s ramp spends seconds at 0.06-0.3), a look-alike
+        hypothesis' estimate crosses ``declare_min`` by chance for tens of milliseconds;
+        a growing fault's stays above (docs/faults.md, "Ramps").  Abrupt faults are
+        declared with estimates near their size, at the filter's ``hold``.
+        """
+        s = self.settings
+        if s.small_below <= 0:
+            return hold
+        cand = jnp.argmax(log_mu, axis=0)  # (*runs,)
+        hyp = np.arange(1, self.num_faults + 1).reshape((-1,) + (1,) * cand.ndim)
+        cest = jnp.sum(jnp.where(cand == hyp, est, 0.0), axis=0)
+        return jnp.where(cest < s.small_below, jnp.maximum(s.small_hold, hold), hold)
 
     def _handover(self, st: IMMState, cache: AugCache, winner, changed, new_declared):
         """Hand-over on a change of ``D`` and re-centring of the expansion (module doc)."""
