@@ -21,7 +21,8 @@ itself).  Mixing (eqs. 15-17) thus never blends a competing hypothesis' estimate
 the prior, and the retraction hypothesis leaves a declared estimate alone.
 A hypothesis restarts at most once every ``restart_gap`` steps for its low
 probability (``floor_gap`` for being held at the floor; both 1 by default), and not at all
-while the leading hypothesis is still too small to be declared (``race_below``); a
+while the leading hypothesis is still too small to be declared (``race_below``; and
+with ``race_floor``, off by default, not at the floor either); a
 declared fault's walk grows with its size while it is the only declared fault
 (``walk_rel``, ``walk_rel_single``; docs/faults.md, "Ramps").
 While a fault is declared, ``walk_settled``, ``post_gap``, ``post_floor_gap`` and
@@ -208,7 +209,12 @@ class UIMMEstDiagnoser(Diagnoser):
         early in a ramp two look-alikes (valve wear, leakage) race where only noise
         tells them apart, and the one behind keeps gathering the evidence (``Kq``) that
         grows with the fault.  An abrupt fault's leader starts from the prior, above the
-        bound.  Returns the state and the new ``since``.
+        bound.  With ``race_floor``, while the leader's estimate is below that bound a
+        hypothesis held at its floor does not restart either: over a slow ramp the true
+        fault sits for seconds near the floor, and a hypothesis that restarts from the
+        prior whenever its estimate touches the floor never gathers the evidence to beat
+        a look-alike whose estimate has grown 2-4x the truth (docs/faults.md, "Ramps").
+        Returns the state and the new ``since``.
         """
         n, F, s = self.dyn.n, self.num_faults, self.settings
         var_all = _mag_var(st.cov, n)
@@ -343,7 +349,7 @@ class UIMMEstDiagnoser(Diagnoser):
         def cand_set(c):
             full = self._candidate_set(c, declared)
             new = full & ~declared
-            big = est - s.declare_z * est_sd >= s.declare_min
+            big = est >= s.declare_min
             return jnp.where(jnp.any(new & ~big, axis=0), declared, full)
 
         dec = decide(
@@ -353,7 +359,7 @@ class UIMMEstDiagnoser(Diagnoser):
             state.run_model,
             state.run_len,
             params.threshold,
-            self._hold(imm_state.log_mode_probs, est, params.hold),
+            params.hold,
         )
         # Retraction: the "D - f_j" hypothesis wins (same rule), or the estimate stays low.
         top = jnp.max(imm_state.log_mode_probs, axis=0)
@@ -399,22 +405,6 @@ class UIMMEstDiagnoser(Diagnoser):
             retracted_now=any_ret,
         )
         return new_state, out
-
-    def _hold(self, log_mu: jax.Array, est: jax.Array, hold):
-        """Persistence of a declaration: ``small_hold`` if its estimate is below ``small_below``.
-
-        While a slow fault is small (a 10 s ramp spends seconds at 0.06-0.3), a look-alike
-        hypothesis' estimate crosses ``declare_min`` by chance for tens of milliseconds;
-        a growing fault's stays above (docs/faults.md, "Ramps").  Abrupt faults are
-        declared with estimates near their size, at the filter's ``hold``.
-        """
-        s = self.settings
-        if s.small_below <= 0:
-            return hold
-        cand = jnp.argmax(log_mu, axis=0)  # (*runs,)
-        hyp = np.arange(1, self.num_faults + 1).reshape((-1,) + (1,) * cand.ndim)
-        cest = jnp.sum(jnp.where(cand == hyp, est, 0.0), axis=0)
-        return jnp.where(cest < s.small_below, jnp.maximum(s.small_hold, hold), hold)
 
     def _handover(self, st: IMMState, cache: AugCache, winner, changed, new_declared):
         """Hand-over on a change of ``D`` and re-centring of the expansion (module doc)."""

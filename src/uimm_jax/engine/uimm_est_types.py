@@ -56,11 +56,6 @@ class EstSettings(NamedTuple):
         post_floor_gap: steps between two restarts of a hypothesis held at the floor
             while a fault is declared (0: ``floor_gap``; docs/faults.md, "Session 8").
         retract_hold: samples a retraction rule must hold (0: the filter's ``hold``).
-        declare_z: a fault is declared only if its estimate less ``declare_z`` standard
-            deviations is at least ``declare_min`` (0: the estimate itself).
-        small_below: a declaration whose estimate is below this needs ``small_hold``
-            samples instead of the filter's ``hold`` (0: off; docs/faults.md, "Ramps").
-        small_hold: the persistence of such a declaration, in samples.
         race_floor: while the most probable model is an undeclared hypothesis whose
             estimate is below this, a hypothesis held at its floor does not restart from
             the prior either, but keeps filtering at the floor (0: off; see
@@ -88,9 +83,6 @@ class EstSettings(NamedTuple):
     settle_steps: int = 0
     post_floor_gap: int = 0
     retract_hold: int = 0
-    declare_z: float = 0.0
-    small_below: float = 0.0
-    small_hold: int = 0
     race_floor: float = 0.0
 
 
