@@ -343,7 +343,8 @@ def test_race_floor_keeps_a_lookalike_at_its_floor_filtering(lead_mean, kept):
     mean = imm0.mean.at[3, 1].set(s.floor_mean)  # valve wear's own estimate at the floor
     lp = imm0.log_mode_probs.at[1].set(np.log(0.1))
     state = (imm0._replace(mean=mean, log_mode_probs=lp), sets, declared, since)
-    for d2, want in ((_diag_with(diag, race_floor=0.3), kept), (diag, False)):
+    first = _diag_with(diag, race_floor=0.3, race_floor_first=True)  # nothing declared
+    for d2, want in ((_diag_with(diag, race_floor=0.3), kept), (first, kept), (diag, False)):
         imm, _ = d2._reset_unused(*state)
         own = np.asarray(imm.mean[3, 1])  # valve wear's own magnitude, per run
         var = np.asarray(imm.cov[3, 3, 1])

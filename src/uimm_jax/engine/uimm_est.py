@@ -239,7 +239,8 @@ class UIMMEstDiagnoser(Diagnoser):
             floor_gap = jnp.where(any_decl, s.post_floor_gap, s.floor_gap)
         held = (own_mean <= s.floor_mean) & (since >= floor_gap)  # held at its floor
         if s.race_floor > 0:  # nor at the floor, in a race (docs/faults.md, "Ramps")
-            held = held & ~jnp.any(lead_f & (own_mean < s.race_floor), axis=0)
+            race = jnp.any(lead_f & (own_mean < s.race_floor), axis=0)
+            held = held & ~(race & ~any_decl if s.race_floor_first else race)
         live = ~low & ~held  # (F, *runs)
         restart = ~declared & ~live
         since = jnp.where(restart, 1, jnp.minimum(since + 1, _gap_cap(s)))

@@ -60,6 +60,7 @@ class EstSettings(NamedTuple):
             estimate is below this, a hypothesis held at its floor does not restart from
             the prior either, but keeps filtering at the floor (0: off; see
             ``_reset_unused``).
+        race_floor_first: ``race_floor`` holds only while no fault is declared.
     """
 
     walk: float = 1e-3
@@ -84,6 +85,7 @@ class EstSettings(NamedTuple):
     post_floor_gap: int = 0
     retract_hold: int = 0
     race_floor: float = 0.0
+    race_floor_first: bool = False
 
 
 class EstState(NamedTuple):
