@@ -329,6 +329,30 @@ def test_race_below_keeps_a_losing_lookalike_filtering(lead_mean, kept):
         np.testing.assert_allclose([own[1], var[1]], [s.prior_mean, s.prior_sd**2])
 
 
+@pytest.mark.parametrize(("lead_mean", "kept"), [(0.2, True), (0.5, False)])
+def test_race_floor_keeps_a_lookalike_at_its_floor_filtering(lead_mean, kept):
+    # Valve wear's hypothesis sits at its floor (probability 0.1, not improbable).  While
+    # leakage leads below race_floor it keeps its own estimate at the floor; led by a
+    # larger leakage, or by model 0, or with the setting off (the default), it restarts
+    # from the prior, as every hypothesis held at its floor does.
+    st = _est_setup(sim=1)
+    diag = st.diagnoser
+    s = diag.settings
+    assert s.race_floor == 0.0
+    imm0, sets, declared, since = _race_state(diag, 2, lead_mean)
+    mean = imm0.mean.at[3, 1].set(s.floor_mean)  # valve wear's own estimate at the floor
+    lp = imm0.log_mode_probs.at[1].set(np.log(0.1))
+    state = (imm0._replace(mean=mean, log_mode_probs=lp), sets, declared, since)
+    first = _diag_with(diag, race_floor=0.3, race_floor_first=True)  # nothing declared
+    for d2, want in ((_diag_with(diag, race_floor=0.3), kept), (first, kept), (diag, False)):
+        imm, _ = d2._reset_unused(*state)
+        own = np.asarray(imm.mean[3, 1])  # valve wear's own magnitude, per run
+        var = np.asarray(imm.cov[3, 3, 1])
+        np.testing.assert_allclose(own[0], s.floor_mean if want else s.prior_mean)
+        np.testing.assert_allclose(var[0], 0.01 if want else s.prior_sd**2)
+        np.testing.assert_allclose([own[1], var[1]], [s.prior_mean, s.prior_sd**2])
+
+
 def test_walk_rel_single_grows_a_lone_declared_faults_walk_only():
     import jax.numpy as jnp
 

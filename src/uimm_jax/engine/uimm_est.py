@@ -21,7 +21,8 @@ itself).  Mixing (eqs. 15-17) thus never blends a competing hypothesis' estimate
 the prior, and the retraction hypothesis leaves a declared estimate alone.
 A hypothesis restarts at most once every ``restart_gap`` steps for its low
 probability (``floor_gap`` for being held at the floor; both 1 by default), and not at all
-while the leading hypothesis is still too small to be declared (``race_below``); a
+while the leading hypothesis is still too small to be declared (``race_below``; and
+with ``race_floor``, off by default, not at the floor either); a
 declared fault's walk grows with its size while it is the only declared fault
 (``walk_rel``, ``walk_rel_single``; docs/faults.md, "Ramps").
 While a fault is declared, ``walk_settled``, ``post_gap``, ``post_floor_gap`` and
@@ -222,7 +223,12 @@ class UIMMEstDiagnoser(Diagnoser):
         early in a ramp two look-alikes (valve wear, leakage) race where only noise
         tells them apart, and the one behind keeps gathering the evidence (``Kq``) that
         grows with the fault.  An abrupt fault's leader starts from the prior, above the
-        bound.  Returns the state and the new ``since``.
+        bound.  With ``race_floor``, while the leader's estimate is below that bound a
+        hypothesis held at its floor does not restart either: over a slow ramp the true
+        fault sits for seconds near the floor, and a hypothesis that restarts from the
+        prior whenever its estimate touches the floor never gathers the evidence to beat
+        a look-alike whose estimate has grown 2-4x the truth (docs/faults.md, "Ramps").
+        Returns the state and the new ``since``.
         """
         n, F, s = self.dyn.n, self.num_faults, self.settings
         var_all = _mag_var(st.cov, n)
@@ -235,10 +241,10 @@ class UIMMEstDiagnoser(Diagnoser):
             due = jnp.where(any_decl, since >= s.post_gap, due)
         elif s.gap_first_only:
             due = due | any_decl
+        lead = jnp.argmax(st.log_mode_probs, axis=0)  # (*runs,)
+        hyp = np.arange(1, F + 1).reshape((F,) + (1,) * (use.ndim - 2))
+        lead_f = (lead == hyp) & ~declared  # (F, *runs)
         if s.race_below > 0:  # a race of faults too small to declare: no restart
-            lead = jnp.argmax(st.log_mode_probs, axis=0)  # (*runs,)
-            hyp = np.arange(1, F + 1).reshape((F,) + (1,) * (use.ndim - 2))
-            lead_f = (lead == hyp) & ~declared  # (F, *runs)
             small = jnp.any(lead_f & (own_mean < s.race_below), axis=0)
             due = due & ~small
         low = (st.log_mode_probs[1:] < np.log(s.restart_below)) & due
@@ -246,6 +252,9 @@ class UIMMEstDiagnoser(Diagnoser):
         if s.post_floor_gap > 0:
             floor_gap = jnp.where(any_decl, s.post_floor_gap, s.floor_gap)
         held = (own_mean <= _floor_mean(s, any_decl)) & (since >= floor_gap)  # at its floor
+        if s.race_floor > 0:  # nor at the floor, in a race (docs/faults.md, "Ramps")
+            race = jnp.any(lead_f & (own_mean < s.race_floor), axis=0)
+            held = held & ~(race & ~any_decl if s.race_floor_first else race)
         live = ~low & ~held  # (F, *runs)
         restart = ~declared & ~live
         since = jnp.where(restart, 1, jnp.minimum(since + 1, _gap_cap(s)))

@@ -61,6 +61,11 @@ class EstSettings(NamedTuple):
             declared (a second fault still growing; docs/faults.md, "Session 9").
         post_floor_mean: ``floor_mean`` while a fault is declared (0: ``floor_mean``), so
             that a challenger can follow a second fault from a smaller size.
+        race_floor: while the most probable model is an undeclared hypothesis whose
+            estimate is below this, a hypothesis held at its floor does not restart from
+            the prior either, but keeps filtering at the floor (0: off; see
+            ``_reset_unused``).
+        race_floor_first: ``race_floor`` holds only while no fault is declared.
     """
 
     walk: float = 1e-3
@@ -86,6 +91,8 @@ class EstSettings(NamedTuple):
     retract_hold: int = 0
     walk_rel_newest: bool = False
     post_floor_mean: float = 0.0
+    race_floor: float = 0.0
+    race_floor_first: bool = False
 
 
 class EstState(NamedTuple):
