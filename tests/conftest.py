@@ -11,7 +11,7 @@ the CLI's subprocesses), which JAX's in-memory caches cannot share; JAX's persis
 uses a fresh temporary directory, removed at exit, so nothing carries over between runs;
 the environment variables reach the subprocesses the tests start.  A cache hit loads the
 executable XLA compiled for the same key, so results do not change.  Measured in
-README.md ("Testing").  ``UIMM_JAX_TEST_NO_CACHE=1`` turns it off.
+README.md ("Quick start", after the test command).  ``UIMM_JAX_TEST_NO_CACHE=1`` turns it off.
 """
 
 import atexit
