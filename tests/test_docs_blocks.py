@@ -225,8 +225,11 @@ def entry_for(block: Block) -> list[Entry]:
 @pytest.fixture(scope="module")
 def jax_cache(tmp_path_factory) -> Path:
     """A JAX compilation cache shared by the blocks: a kernel that several blocks compile
-    with the same shapes (the sweeps of tuning.md's stages) is compiled once."""
-    return tmp_path_factory.mktemp("jax_cache")
+    with the same shapes (the sweeps of tuning.md's stages) is compiled once.  The test
+    session's own cache (tests/conftest.py) when it has one, so that the blocks also reuse
+    what the other tests compiled."""
+    session = os.environ.get("JAX_COMPILATION_CACHE_DIR")
+    return Path(session) if session else tmp_path_factory.mktemp("jax_cache")
 
 
 @pytest.fixture(scope="module")
