@@ -262,15 +262,16 @@ def _diag_with(diag, **changes):
 
 @pytest.mark.parametrize(
     ("mag", "off"),
-    [(0.5, {"race_below": 0.0}), (3.0, {"walk_rel": 0.0})],
+    [(0.5, {"race_below": 0.0, "race_floor": 0.0}), (3.0, {"walk_rel": 0.0})],
     ids=["race_below", "walk_rel"],
 )
 def test_uimm_est_isolates_incipient_valve_wear(mag, off):
     """A 1 s valve-wear ramp (sim 1) is valve wear, never leakage (docs/faults.md, "Ramps").
 
-    Valve wear and leakage both raise ``Kc + Cl``.  Without ``race_below`` the hypothesis
-    that falls behind while the wear is tiny restarts from the prior at every step and
-    cannot come back (at 0.5: leakage declared in 16 of 16 sweep runs); without
+    Valve wear and leakage both raise ``Kc + Cl``.  Without ``race_below`` and
+    ``race_floor`` (either one alone keeps this run right) the hypothesis that falls
+    behind while the wear is tiny restarts from the prior at every step and cannot come
+    back (at 0.5: leakage declared in 16 of 16 sweep runs); without
     ``walk_rel`` a declared wear growing to 3 is followed with a lag that a small leakage
     explains (16 of 16).  Each run here (seed 0) fails without its setting.
     """
@@ -333,18 +334,20 @@ def test_race_below_keeps_a_losing_lookalike_filtering(lead_mean, kept):
 def test_race_floor_keeps_a_lookalike_at_its_floor_filtering(lead_mean, kept):
     # Valve wear's hypothesis sits at its floor (probability 0.1, not improbable).  While
     # leakage leads below race_floor it keeps its own estimate at the floor; led by a
-    # larger leakage, or by model 0, or with the setting off (the default), it restarts
-    # from the prior, as every hypothesis held at its floor does.
+    # larger leakage, or by model 0, or with the setting off, it restarts from the prior,
+    # as every hypothesis held at its floor does.  Nothing is declared here, so the
+    # default (race_floor_first) and the rule in every phase act alike.
     st = _est_setup(sim=1)
     diag = st.diagnoser
     s = diag.settings
-    assert s.race_floor == 0.0
+    assert (s.race_floor, s.race_floor_first) == (0.3, True)  # the defaults
     imm0, sets, declared, since = _race_state(diag, 2, lead_mean)
     mean = imm0.mean.at[3, 1].set(s.floor_mean)  # valve wear's own estimate at the floor
     lp = imm0.log_mode_probs.at[1].set(np.log(0.1))
     state = (imm0._replace(mean=mean, log_mode_probs=lp), sets, declared, since)
-    first = _diag_with(diag, race_floor=0.3, race_floor_first=True)  # nothing declared
-    for d2, want in ((_diag_with(diag, race_floor=0.3), kept), (first, kept), (diag, False)):
+    every = _diag_with(diag, race_floor_first=False)
+    off = _diag_with(diag, race_floor=0.0)
+    for d2, want in ((every, kept), (diag, kept), (off, False)):
         imm, _ = d2._reset_unused(*state)
         own = np.asarray(imm.mean[3, 1])  # valve wear's own magnitude, per run
         var = np.asarray(imm.cov[3, 3, 1])

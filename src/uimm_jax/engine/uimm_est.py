@@ -22,7 +22,7 @@ the prior, and the retraction hypothesis leaves a declared estimate alone.
 A hypothesis restarts at most once every ``restart_gap`` steps for its low
 probability (``floor_gap`` for being held at the floor; both 1 by default), and not at all
 while the leading hypothesis is still too small to be declared (``race_below``; and
-with ``race_floor``, off by default, not at the floor either); a
+with ``race_floor``, while nothing is declared, not at the floor either); a
 declared fault's walk grows with its size while it is the only declared fault
 (``walk_rel``, ``walk_rel_single``; docs/faults.md, "Ramps").
 While a fault is declared, ``walk_settled``, ``post_gap``, ``post_floor_gap`` and

@@ -64,8 +64,8 @@ class EstSettings(NamedTuple):
         race_floor: while the most probable model is an undeclared hypothesis whose
             estimate is below this, a hypothesis held at its floor does not restart from
             the prior either, but keeps filtering at the floor (0: off; see
-            ``_reset_unused``).
-        race_floor_first: ``race_floor`` holds only while no fault is declared.
+            ``_reset_unused``; default 0.3 since session 9, docs/faults.md).
+        race_floor_first: ``race_floor`` holds only while no fault is declared (default).
     """
 
     walk: float = 1e-3
@@ -91,8 +91,8 @@ class EstSettings(NamedTuple):
     retract_hold: int = 0
     walk_rel_newest: bool = False
     post_floor_mean: float = 0.0
-    race_floor: float = 0.0
-    race_floor_first: bool = False
+    race_floor: float = 0.3
+    race_floor_first: bool = True
 
 
 class EstState(NamedTuple):
