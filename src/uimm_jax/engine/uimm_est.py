@@ -223,7 +223,8 @@ class UIMMEstDiagnoser(Diagnoser):
         early in a ramp two look-alikes (valve wear, leakage) race where only noise
         tells them apart, and the one behind keeps gathering the evidence (``Kq``) that
         grows with the fault.  An abrupt fault's leader starts from the prior, above the
-        bound.  With ``race_floor``, while the leader's estimate is below that bound a
+        bound.  With ``race_floor`` (and, with ``race_floor_first``, the defaults, only
+        while nothing is declared), while the leader's estimate is below that bound a
         hypothesis held at its floor does not restart either: over a slow ramp the true
         fault sits for seconds near the floor, and a hypothesis that restarts from the
         prior whenever its estimate touches the floor never gathers the evidence to beat
@@ -300,7 +301,7 @@ class UIMMEstDiagnoser(Diagnoser):
         ``walk_settled``, whose ``since`` is a declared fault's age) it also acts on the
         fault declared last while it is younger than ``settle_steps``: a second fault that
         still grows is followed as the first was (docs/faults.md, "Session 9: the second
-        fault's walk").  Adds a PSD matrix.
+        fault while it grows").  Adds a PSD matrix.
         """
         n, s = self.dyn.n, self.settings
         sd = jnp.maximum(s.walk, s.walk_rel * jnp.abs(st.mean[n:, 0]))  # (F, *runs)
