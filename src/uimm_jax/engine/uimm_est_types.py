@@ -239,7 +239,9 @@ def est_value_from_text(name: str, text: str) -> Any:
     """
     text = text.strip()
     if name in EstSettings._fields and _kind(name) is bool:
-        return {"true": True, "1": True, "false": False, "0": False}.get(text.lower(), text)
+        flag = {"true": True, "1": True, "false": False, "0": False}.get(text.lower())
+        if flag is not None:
+            return flag
     for convert in (int, float):
         try:
             return convert(text)

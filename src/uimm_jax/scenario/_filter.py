@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from uimm_jax._checks import MAX_INT32, ROW_SUM_TOL, probability_problem
+from uimm_jax.engine.uimm_est_types import EstSettings, est_setting_problem, est_settings
 from uimm_jax.plants.base import Plant
 from uimm_jax.scenario._fields import FieldChecker, frozen, suggest
 from uimm_jax.scenario.spec import (
@@ -34,14 +35,20 @@ _FILTER_KEYS = (
     "initial_cov",
     "gate",
     "decision",
+    "est",
 )
+EST_METHOD = "uimm-est"
+"""The method that ``[filter.est]`` sets (the size-estimating UIMM)."""
 _DECISION_KEYS = ("threshold", "hold")
 
 
 class FilterParser(FieldChecker):
     """The checks of ``[filter]`` (raises and warns as :class:`FieldChecker` does)."""
 
-    def parse_filter(self, value: Any, plant: Plant, num_faults: int) -> FilterSpec:
+    def parse_filter(
+        self, value: Any, plant: Plant, num_faults: int, sweep_methods: Any = None
+    ) -> FilterSpec:
+        """``[filter]``; ``sweep_methods`` is the raw ``[sweep].methods`` (or ``None``)."""
         table = self.table(value, "[filter]")
         self.keys(table, "[filter]", _FILTER_KEYS, ("method",))
         method = self.string(table["method"], "[filter].method")
@@ -140,6 +147,20 @@ class FilterParser(FieldChecker):
             )
             decision = DecisionSpec(threshold, hold)
 
+        est = None
+        if "est" in table:
+            others = [sweep_methods] if isinstance(sweep_methods, str) else sweep_methods
+            if method != EST_METHOD and EST_METHOD not in (
+                others if isinstance(others, list) else ()
+            ):
+                self.fail(
+                    "[filter.est]",
+                    f"sets the size estimation of method {EST_METHOD!r}, but [filter].method "
+                    f"is {method!r} (and [sweep].methods does not include {EST_METHOD!r}): "
+                    f'set method = "{EST_METHOD}" or remove [filter.est].',
+                )
+            est = self.parse_est(table["est"])
+
         return FilterSpec(
             method=method,
             transition=transition,
@@ -149,4 +170,19 @@ class FilterParser(FieldChecker):
             initial_cov=frozen(cov),
             decision=decision,
             gate=gate,
+            est=est,
         )
+
+    def parse_est(self, value: Any) -> EstSettings:
+        """``[filter.est]``: :class:`EstSettings` fields by name, the others at their defaults.
+
+        Each value is checked by :func:`~uimm_jax.engine.uimm_est_types.est_setting_problem`
+        (the one definition of a valid setting, also used by ``build_diagnoser``).
+        """
+        table = self.table(value, "[filter.est]", " of uimm-est settings (name = value)")
+        self.keys(table, "[filter.est]", EstSettings._fields)
+        for key, v in table.items():
+            problem = est_setting_problem(key, v)
+            if problem:
+                self.fail(self.path("[filter.est]", key), f"must be {problem}.")
+        return est_settings(table)

@@ -215,7 +215,9 @@ class _Parser(FilterParser):
         process, measurement = self.parse_noise(top["noise"], plant)
         faults = self.parse_faults(top.get("faults"), plant, nominal)
         events = self.parse_events(top.get("events"), faults, duration, dt, plant, nominal)
-        filter_spec = self.parse_filter(top["filter"], plant, len(faults))
+        raw_sweep = top.get("sweep")
+        methods = raw_sweep.get("methods") if isinstance(raw_sweep, Mapping) else None
+        filter_spec = self.parse_filter(top["filter"], plant, len(faults), methods)
         sweep = None
         if "sweep" in top:
             sweep = copy.deepcopy(dict(self.table(top["sweep"], "[sweep]")))
