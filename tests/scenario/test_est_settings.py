@@ -167,3 +167,11 @@ def test_docs_table_lists_every_setting_with_its_default():
     for name, default in EstSettings()._asdict().items():
         written = {"true": True, "false": False}.get(rows[name], rows[name])
         assert written == default or float(written) == default, (name, rows[name])
+
+
+def test_tuning_says_to_drop_the_table_from_its_fixed_size_copy():
+    from uimm_jax.studies import tune
+
+    sc = parse_scenario(est_dict(A))
+    with pytest.raises(ValueError, match=r'method = "uimm".*drop \[filter\.est\] from the copy'):
+        tune.make_batch(sc, [tune.scenario_case(sc)], 1, seed=0)

@@ -33,6 +33,10 @@ __all__ = [
 class EstSettings(NamedTuple):
     """Static settings of the magnitude estimation (module doc; magnitude units).
 
+    A scenario file sets them in ``[filter.est]`` (docs/scenarios.md); every value given
+    to :func:`~uimm_jax.engine.uimm_est.build_diagnoser` is checked by
+    :func:`check_est_settings`.
+
     Attributes:
         walk: random-walk standard deviation of a magnitude per step.
         prior_mean: prior magnitude of a new fault (1: the library's value).
