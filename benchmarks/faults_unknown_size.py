@@ -297,17 +297,21 @@ def main() -> None:
     args = p.parse_args()
     if args.walk is not None:
         args.set = [f"walk={args.walk}", *args.set]
-    if args.set:
+    if args.set:  # checked as [filter.est] is (est_settings); then made the defaults
         import uimm_jax.engine.uimm_est as ue
+        from uimm_jax.engine.uimm_est_types import est_settings, est_value_from_text
 
-        fields = ue.EstSettings._fields
-        d = dict(zip(fields, ue.EstSettings.__new__.__defaults__, strict=True))
+        values = {}
         for item in args.set:
-            name, _, value = item.partition("=")
-            if name not in d:
-                p.error(f"--set: {name!r} is not an EstSettings field ({', '.join(fields)})")
-            d[name] = type(d[name])(float(value)) if value else p.error(f"--set: {item!r}")
-        ue.EstSettings.__new__.__defaults__ = tuple(d.values())
+            name, eq, text = item.partition("=")
+            if not eq or not text:
+                p.error(f"--set: {item!r}: expected NAME=VALUE, e.g. restart_gap=200")
+            values[name] = est_value_from_text(name, text)
+        try:
+            chosen = est_settings(values, name="--set")
+        except ValueError as err:
+            p.error(str(err))
+        ue.EstSettings.__new__.__defaults__ = tuple(chosen)
     t0 = time.perf_counter()
     if args.part == "sizes":
         res = part_sizes(args)

@@ -31,7 +31,8 @@ Each block is one test (``test_block[docs/montecarlo.md:15]``), handled by the o
 * ``skip``: not run, with the reason (the suite itself).
 * ``toml``: parsed; a complete scenario by the scenario parser, a fragment of a shipped
   file must be part of that file (``part_of``), the ``[sweep]`` example merged into a
-  scenario and validated (``merge_into``), anything else by ``check``.
+  scenario and validated (``merge_into``), the ``[filter.est]`` example merged into a
+  ``uimm-est`` scenario's ``[filter]`` (``check="filter_est"``), anything else by ``check``.
 * ``csv``: loaded by ``load_measurements`` against ``scenarios/paper_sim1_tuned.toml``.
 * ``text``: output examples and layouts, not code.  A block must carry a language tag:
   an untagged block fails (tag output as ``text``).
@@ -184,6 +185,8 @@ BLOCKS = (
           part_of="scenarios/paper_sim1.toml"),
     Entry("docs/scenarios.md", "# Paper simulation 1 (section 4.2, Table 2).", "toml"),
     Entry("docs/scenarios.md", "variant = parse_scenario(d", "run"),
+    Entry("docs/scenarios.md", "[filter.est]              # settings \"A\"", "toml",
+          merge_into="scenarios/paper_sim2_tuned.toml", check="filter_est"),
     # ---------------------------------------------------------------- docs/tuning.md
     Entry("docs/tuning.md", "--eval-runs 200 --out tuned.toml", "run",
           subs=(("--iters 50", "--iters 2"), ("--train-duration 30", "--train-duration 0.3"),
@@ -401,7 +404,12 @@ def contains(big, small) -> bool:
 
 def check_toml(block: Block, entry: Entry) -> None:
     doc = tomllib.loads(block.text)
-    if entry.part_of:
+    if entry.check == "filter_est":  # merged into a uimm-est file's [filter]: every key taken
+        base = tomllib.loads((ROOT / entry.merge_into).read_text())
+        base["filter"] |= doc["filter"]
+        est, given = parse_scenario(base, source=block.id).filter.est, doc["filter"]["est"]
+        assert est is not None and {k: getattr(est, k) for k in given} == given, est
+    elif entry.part_of:
         whole = tomllib.loads((ROOT / entry.part_of).read_text())
         assert contains(whole, doc), f"{block.id}: the snippet differs from {entry.part_of}"
     elif entry.merge_into:

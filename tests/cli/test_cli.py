@@ -16,6 +16,7 @@ import pytest
 import uimm_jax
 from _robustness_helpers import CHUNK, REPO, short_dict, short_scenario, write_short
 from uimm_jax import cli
+from uimm_jax.engine.uimm_est_types import EstSettings
 from uimm_jax.errors import ScenarioError
 from uimm_jax.scenario.parse import load_scenario
 from uimm_jax.scenario.write import dump_scenario
@@ -227,6 +228,7 @@ def test_run_prints_sizes_and_retractions_of_uimm_est(tmp_path, capsys, monkeypa
     text = capsys.readouterr().out
     summary = json.loads((out / "summary.json").read_text())
     assert summary["method"] == "uimm-est" and summary["retractions"]
+    assert summary["est_settings"] == EstSettings()._asdict()  # no [filter.est]: the defaults
     for dec in summary["declarations"]:
         lo, hi = dec["magnitude_ci"]
         want = f"magnitude {dec['magnitude']:.3g} [{lo:.3g}, {hi:.3g}]"

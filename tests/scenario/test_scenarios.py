@@ -409,6 +409,7 @@ MALFORMED = {
     "unknown_filter_key.toml": ("\\[filter\\]\\.trasition", "did you mean 'transition'"),
     "unknown_input_key.toml": ("\\[input\\]\\.amplitde", "did you mean 'amplitude'"),
     "unknown_decision_key.toml": ("\\[filter\\.decision\\]\\.treshold", "did you mean 'threshold'"),
+    "unknown_est_key.toml": ("\\[filter\\.est\\]\\.walk_setled", "did you mean 'walk_settled'"),
     "unknown_event_key.toml": ("\\[\\[events\\]\\]\\[0\\]\\.magnitud", "did you mean 'magnitude'"),
     "missing_name.toml": ("^name$", "required key is missing"),
     "missing_duration.toml": ("^duration$", "required key is missing"),

@@ -156,6 +156,33 @@ def test_resume_refuses_another_scenario_and_names_the_field(finished):
         mc.run_sweep(other, checkpoint=out, resume=True)
 
 
+def with_est(sc, **est):
+    """``sc`` with a ``[filter.est]`` table (its method is uimm-est)."""
+    from uimm_jax.scenario.parse import parse_scenario
+    from uimm_jax.scenario.write import scenario_to_dict
+
+    d = scenario_to_dict(sc)
+    d["filter"]["est"] = est
+    return parse_scenario(d, source="est")
+
+
+def test_resume_refuses_other_est_settings_and_names_them(finished, tmp_path):
+    # [filter.est] is part of the scenario the checkpoint records: each differing setting
+    # is named (a manifest-level check, no sweep runs), and a checkpoint made without the
+    # table refuses a scenario with one.
+    sc, out, _ = finished
+    spec, shape = sweep_spec(sc), (10, 2, 3, 3)
+    then = sweep_store.manifest_for(with_est(sc, walk=1e-3), spec, np.float64, 32, 1)
+    sweep_store.open_store(tmp_path, then, resume=False, shape=shape)
+    now = sweep_store.manifest_for(with_est(sc, walk=2e-3), spec, np.float64, 32, 1)
+    named = r"scenario\.filter\.est\.walk \(0\.001 then, 0\.002 now\)"
+    with pytest.raises(ValueError, match=named):
+        sweep_store.open_store(tmp_path, now, resume=True, shape=shape)
+    sweep_store.open_store(tmp_path, then, resume=True, shape=shape)  # the same: resumed
+    with pytest.raises(ValueError, match=r"scenario\.filter\.est \(absent then, \{"):
+        mc.run_sweep(with_est(sc, walk=2e-3), checkpoint=out, resume=True)
+
+
 def one_run(**fields):
     """The arrays of one finished run for ``save_batch`` (3 faults, 3 states)."""
     empty = sweep_store.Finished.empty(1, 1, 3, 3)._asdict()

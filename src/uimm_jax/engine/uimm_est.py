@@ -72,7 +72,7 @@ from uimm_jax.engine.decision import decide
 from uimm_jax.engine.imm import IMMParams, IMMState, imm_step
 from uimm_jax.engine.uimm import Diagnoser, DiagParams, _pick_model
 from uimm_jax.engine.uimm import build_diagnoser as _build_fixed
-from uimm_jax.engine.uimm_est_types import EstInfo, EstSettings, EstState
+from uimm_jax.engine.uimm_est_types import EstInfo, EstSettings, EstState, check_est_settings
 
 __all__ = ["EstInfo", "EstSettings", "EstState", "UIMMEstDiagnoser", "build_diagnoser"]
 
@@ -540,7 +540,9 @@ def build_diagnoser(
         dyn: dynamics object for the plant (:func:`uimm_jax.plants.make_dynamics`).
         table: the fault table of the bank.
         gate: optional chi-square innovation gate.
-        settings: :class:`EstSettings` of ``"uimm-est"`` (default: the defaults).
+        settings: :class:`EstSettings` of ``"uimm-est"`` (default: the defaults); checked
+            by :func:`~uimm_jax.engine.uimm_est_types.check_est_settings` (a field out of
+            its type or range is a ``ValueError`` naming it).
     """
     if method != UIMMEstDiagnoser.method:
         if settings is not None:
@@ -554,7 +556,5 @@ def build_diagnoser(
                 ) from None
             raise
     fixed = _build_fixed("uimm", dyn, table, gate=gate)  # the shared argument checks
-    settings = EstSettings() if settings is None else settings
-    if not isinstance(settings, EstSettings):
-        raise TypeError(f"settings: expected EstSettings, got {type(settings).__name__}")
+    settings = EstSettings() if settings is None else check_est_settings(settings)
     return UIMMEstDiagnoser(fixed.dyn, fixed.table, fixed.gate, settings)

@@ -6,18 +6,36 @@ The diagnoser itself, and what each setting does, is :mod:`uimm_jax.engine.uimm_
 
 from __future__ import annotations
 
-from typing import NamedTuple
+import difflib
+import math
+import numbers
+from collections.abc import Mapping
+from typing import Any, NamedTuple
 
 import jax
+import numpy as np
 
+from uimm_jax._checks import MAX_INT32, integer_problem, is_number, type_name
 from uimm_jax.engine.augmented import AugCache
 from uimm_jax.engine.imm import IMMState, StepInfo
 
-__all__ = ["EstInfo", "EstSettings", "EstState"]
+__all__ = [
+    "EstInfo",
+    "EstSettings",
+    "EstState",
+    "check_est_settings",
+    "est_setting_problem",
+    "est_settings",
+    "est_value_from_text",
+]
 
 
 class EstSettings(NamedTuple):
     """Static settings of the magnitude estimation (module doc; magnitude units).
+
+    A scenario file sets them in ``[filter.est]`` (docs/scenarios.md); every value given
+    to :func:`~uimm_jax.engine.uimm_est.build_diagnoser` is checked by
+    :func:`check_est_settings`.
 
     Attributes:
         walk: random-walk standard deviation of a magnitude per step.
@@ -93,6 +111,147 @@ class EstSettings(NamedTuple):
     post_floor_mean: float = 0.0
     race_floor: float = 0.3
     race_floor_first: bool = True
+
+
+# -- validation: the one place that says what a setting may be ---------------------------
+
+_SD, _MAG, _STEPS = "a standard deviation", "a magnitude", "steps"
+_RULES: dict[str, tuple[float, bool, str]] = {
+    # float fields: (low, low_open, what); int fields: (low, False, what); bools: none
+    "walk": (0.0, False, _SD),
+    "prior_mean": (0.0, True, _MAG),
+    "prior_sd": (0.0, False, _SD),
+    "floor_sd": (0.0, False, _SD),
+    "floor_mean": (0.0, False, _MAG),
+    "declare_min": (0.0, False, _MAG),
+    "retract_below": (0.0, False, _MAG),
+    "relin": (0.0, False, "a magnitude distance"),
+    "restart_below": (0.0, True, "a mode probability"),
+    "reopen_rel": (0.0, False, "a fraction of the estimate; 0: off"),
+    "restart_gap": (1, False, _STEPS),
+    "floor_gap": (1, False, _STEPS),
+    "walk_rel": (0.0, False, "a fraction of the estimate; 0: off"),
+    "race_below": (0.0, False, "a magnitude; 0: off"),
+    "post_gap": (0, False, "steps; 0: off"),
+    "walk_settled": (0.0, False, "a standard deviation; 0: off"),
+    "settle_steps": (0, False, _STEPS),
+    "post_floor_gap": (0, False, "steps; 0: off"),
+    "retract_hold": (0, False, "samples; 0: the filter's hold"),
+    "post_floor_mean": (0.0, False, "a magnitude; 0: off"),
+    "race_floor": (0.0, False, "a magnitude; 0: off"),
+}
+_HIGH = {"restart_below": 1.0}
+
+
+def _kind(name: str) -> type:
+    """``bool``, ``int`` or ``float``: the type of the field's default."""
+    return type(EstSettings._field_defaults[name])
+
+
+def _unknown(name: str) -> str:
+    close = difflib.get_close_matches(name, EstSettings._fields, n=1)
+    hint = f" Did you mean {close[0]!r}?" if close else ""
+    return f"unknown setting {name!r}.{hint} Valid settings: {', '.join(EstSettings._fields)}"
+
+
+def est_setting_problem(name: str, value: Any) -> str | None:
+    """What is wrong with ``value`` for the :class:`EstSettings` field ``name``, or ``None``.
+
+    The one definition of a valid setting: booleans are ``true``/``false`` only, integer
+    settings (``*_gap``, ``settle_steps``, ``retract_hold``) integers (not ``200.0``),
+    the others finite numbers (not booleans), each in its range (standard deviations and
+    magnitudes ``>= 0``, ``prior_mean > 0``, ``restart_below`` in ``(0, 1]``, the gaps
+    ``restart_gap`` and ``floor_gap >= 1``).  Callers word it: ``"<field>: must be
+    <problem>."`` in a scenario file, ``"settings.<field>: expected <problem>"`` in Python.
+
+    Args:
+        name: a field of :class:`EstSettings` (an unknown one is a problem too).
+        value: the value given.
+
+    Returns:
+        E.g. ``"a finite number >= 0 (a standard deviation), got -0.001"``, or ``None``.
+    """
+    if name not in EstSettings._fields:
+        return _unknown(name)
+    kind = _kind(name)
+    if kind is bool:
+        if isinstance(value, bool | np.bool_):
+            return None
+        return f"true or false, got {type_name(value)}; write true or false"
+    low, low_open, what = _RULES[name]
+    if kind is int:
+        if integer_problem(value, int(low), MAX_INT32) is None:
+            return None
+        got = type_name(value)
+        if isinstance(value, numbers.Integral) and not isinstance(value, bool):
+            got = str(int(value))
+        elif is_number(value) and math.isfinite(value) and float(value).is_integer():
+            got += f"; write {int(value)} (no decimal point)"
+        return f"an integer in [{int(low)}, {MAX_INT32}] ({what}), got {got}"
+    high = _HIGH.get(name)
+    rng = ("> " if low_open else ">= ") + f"{low:g}" if high is None else f"in ({low:g}, {high:g}]"
+    if not is_number(value):
+        return f"a number {rng} ({what}), got {type_name(value)}"
+    x = float(value)
+    ok = math.isfinite(x) and (x > low if low_open else x >= low) and (high is None or x <= high)
+    return None if ok else f"a finite number {rng} ({what}), got {x!r}"
+
+
+def check_est_settings(settings: Any, name: str = "settings") -> EstSettings:
+    """``settings`` if it is a valid :class:`EstSettings` (see :func:`est_setting_problem`).
+
+    Raises:
+        TypeError: not an :class:`EstSettings`.
+        ValueError: a field out of its type or range, named ``<name>.<field>``.
+    """
+    if not isinstance(settings, EstSettings):
+        raise TypeError(f"{name}: expected EstSettings, got {type(settings).__name__}")
+    for field, value in zip(EstSettings._fields, settings, strict=True):
+        problem = est_setting_problem(field, value)
+        if problem:
+            raise ValueError(f"{name}.{field}: expected {problem}")
+    return settings
+
+
+def est_settings(
+    values: Mapping[str, Any], base: EstSettings | None = None, name: str = "settings"
+) -> EstSettings:
+    """``base`` (default: the defaults) with ``values`` (field name -> value), validated.
+
+    Integers given for float settings become floats.
+
+    Raises:
+        ValueError: an unknown field (the closest named) or a bad value, named
+            ``<name>.<field>``.
+    """
+    for key, value in values.items():
+        if key not in EstSettings._fields:
+            raise ValueError(f"{name}: {_unknown(key)}")
+        problem = est_setting_problem(key, value)
+        if problem:
+            raise ValueError(f"{name}.{key}: expected {problem}")
+    changes = {key: _kind(key)(value) for key, value in values.items()}
+    return (EstSettings() if base is None else base)._replace(**changes)
+
+
+def est_value_from_text(name: str, text: str) -> Any:
+    """A command line's ``NAME=VALUE`` text as the value :func:`est_settings` checks.
+
+    ``true``/``false`` (and ``1``/``0``) for the boolean settings, an integer's digits
+    for the integer ones, a float for the others; text that reads as none of these is
+    returned as it is (and refused by the check, naming the setting).
+    """
+    text = text.strip()
+    if name in EstSettings._fields and _kind(name) is bool:
+        flag = {"true": True, "1": True, "false": False, "0": False}.get(text.lower())
+        if flag is not None:
+            return flag
+    for convert in (int, float):
+        try:
+            return convert(text)
+        except ValueError:
+            pass
+    return text
 
 
 class EstState(NamedTuple):

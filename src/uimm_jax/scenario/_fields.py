@@ -23,7 +23,7 @@ from uimm_jax.errors import ScenarioError
 from uimm_jax.plants.base import Plant
 from uimm_jax.scenario.spec import PSD_RTOL, SYMMETRY_RTOL
 
-__all__ = ["FieldChecker", "plain", "suggest", "toml_key", "toml_string"]
+__all__ = ["FieldChecker", "frozen", "plain", "suggest", "toml_key", "toml_string"]
 
 
 def suggest(word: str, choices: Iterable[str]) -> str:
@@ -32,6 +32,13 @@ def suggest(word: str, choices: Iterable[str]) -> str:
     lowered = {c.lower(): c for c in choices}
     close = difflib.get_close_matches(word.lower(), list(lowered), n=1, cutoff=0.6)
     return f" Did you mean {lowered[close[0]]!r}?" if close else ""
+
+
+def frozen(array: np.ndarray) -> np.ndarray:
+    """A read-only float64 copy: scenarios are immutable."""
+    out = np.array(array, dtype=np.float64)
+    out.setflags(write=False)
+    return out
 
 
 def plain(value: Any, where: str, source: str) -> Any:

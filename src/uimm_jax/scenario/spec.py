@@ -21,6 +21,7 @@ import numpy as np
 from uimm_jax._checks import ROW_SUM_TOL
 from uimm_jax.engine.bank import param_at_magnitude
 from uimm_jax.engine.truth import INPUT_KINDS
+from uimm_jax.engine.uimm_est_types import EstSettings
 from uimm_jax.plants.base import Plant
 
 __all__ = [
@@ -154,7 +155,8 @@ class FilterSpec:
     resolved arrays.
 
     Attributes:
-        method: ``"uimm"`` (F + 1 models) or ``"imm"`` (2**F models).
+        method: ``"uimm"`` (F + 1 models), ``"uimm-est"`` (the same bank, estimating the
+            faults' sizes) or ``"imm"`` (2**F models).
         transition: the full ``(M, M)`` Markov transition matrix as given (rows sum to 1),
             or ``None``.
         stay: self-transition probability in ``(0, 1)``, the rest spread evenly over the
@@ -165,6 +167,9 @@ class FilterSpec:
         initial_cov: ``(n, n)`` initial covariance (symmetric PSD).
         decision: the fault declaration rule.
         gate: chi-square gate on the normalised innovation squared, or ``None``.
+        est: the ``[filter.est]`` settings of ``"uimm-est"``
+            (:class:`~uimm_jax.engine.uimm_est_types.EstSettings`, the keys not given at
+            their defaults), or ``None`` when the table is absent (the defaults).
     """
 
     method: str
@@ -175,6 +180,7 @@ class FilterSpec:
     initial_cov: np.ndarray
     decision: DecisionSpec = DecisionSpec()
     gate: float | None = None
+    est: EstSettings | None = None
 
 
 @dataclasses.dataclass(frozen=True, eq=False, kw_only=True)

@@ -96,6 +96,8 @@ def scenario_to_dict(scenario: Scenario) -> dict[str, Any]:
         "threshold": float(flt.decision.threshold),
         "hold": int(flt.decision.hold),
     }
+    if flt.est is not None:  # every setting, so that the file does not depend on defaults
+        filter_table["est"] = dict(flt.est._asdict())
     out["filter"] = filter_table
     if scenario.sweep is not None:
         out["sweep"] = copy.deepcopy(scenario.sweep)

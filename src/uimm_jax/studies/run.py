@@ -104,7 +104,7 @@ class RunSetup:
 
 
 @functools.lru_cache(maxsize=64)
-def _cached_diagnoser(plant, dt, method, gate, faults_key, nominal_key):
+def _cached_diagnoser(plant, dt, method, gate, faults_key, nominal_key, est=None):
     nominal = np.asarray(nominal_key)
     table = fault_table(
         plant.param_names,
@@ -116,7 +116,7 @@ def _cached_diagnoser(plant, dt, method, gate, faults_key, nominal_key):
         table.theta_numpy(np.eye(table.num_faults, dtype=bool)[j]) for j in range(table.num_faults)
     ]
     dyn = make_dynamics(plant, dt, np.array(refs))
-    return build_diagnoser(method, dyn, table, gate=gate), table
+    return build_diagnoser(method, dyn, table, gate=gate, settings=est), table
 
 
 def resolve_filter_settings(scenario, method: str) -> tuple[np.ndarray, np.ndarray]:
@@ -183,6 +183,7 @@ def setup_scenario(
         gate,
         faults_key,
         tuple(nominal.tolist()),
+        scenario.filter.est if method == UIMMEstDiagnoser.method else None,  # [filter.est]
     )
     P, mu0 = resolve_filter_settings(scenario, method)
     flt = scenario.filter
@@ -521,9 +522,10 @@ def summarize(
     :mod:`uimm_jax.engine.metrics` (:func:`run_fdi_counts`).  With ``chunk_timings``
     (``(steps, seconds)`` per chunk), ``steps_per_s`` is the
     steady-state rate of the chunks after the first and ``compile_s`` estimates the
-    compilation time (first chunk minus its steady-state share).
+    compilation time (first chunk minus its steady-state share).  ``est_settings``: every
+    ``EstSettings`` field of a ``uimm-est`` run (``[filter.est]``), ``None`` for the others.
     """
-    sc = setup.scenario
+    sc, diag = setup.scenario, setup.diagnoser
     names = list(setup.table.names)
     dt = float(sc.dt)
     N = int(truth_codes.shape[0])
@@ -579,6 +581,7 @@ def summarize(
         "initial_mode_probs": setup.initial_mode_probs.tolist(),
         "threshold": float(sc.filter.decision.threshold),
         "hold": int(sc.filter.decision.hold),
+        "est_settings": diag.settings._asdict() if isinstance(diag, UIMMEstDiagnoser) else None,
         "health": {f"{name}_steps": count for name, count in health.items()},
         "runtime_s": float(runtime_s),
         "simulation_runtime_s": None if sim_runtime_s is None else float(sim_runtime_s),

@@ -167,6 +167,8 @@ def make_batch(
             if scenario.filter.method == "uimm-est"
             else ""
         )
+        if hint and scenario.filter.est is not None:
+            hint += " (drop [filter.est] from the copy, and keep it for the result)"
         raise ValueError(
             f"tuning supports method 'uimm' (the scenario's is {scenario.filter.method!r}){hint}"
         )
