@@ -171,7 +171,7 @@ class UIMMEstDiagnoser(Diagnoser):
 
     def _cache(self, declared: jax.Array, a0: jax.Array) -> AugCache:
         """The augmented cache of the bank of ``declared`` at magnitudes ``(F, M, *runs)``."""
-        return self.aug.prepare(self.model_sets(declared), a0)
+        return self.aug.prepare(self.model_sets(declared), a0, self.settings.tangent_order)
 
     def prepare(self, declared: jax.Array, dtype) -> Any:
         """The cache at the prior magnitudes (see :meth:`init`)."""
@@ -557,4 +557,10 @@ def build_diagnoser(
     settings = EstSettings() if settings is None else settings
     if not isinstance(settings, EstSettings):
         raise TypeError(f"settings: expected EstSettings, got {type(settings).__name__}")
+    order = settings.tangent_order
+    if isinstance(order, bool) or not isinstance(order, int | np.integer) or not 0 <= order <= 12:
+        raise ValueError(
+            "settings.tangent_order: expected 0 (off) or a Taylor degree from 1 to 12, "
+            f"got {order!r}"
+        )
     return UIMMEstDiagnoser(fixed.dyn, fixed.table, fixed.gate, settings)

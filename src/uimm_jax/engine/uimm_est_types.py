@@ -66,6 +66,10 @@ class EstSettings(NamedTuple):
             the prior either, but keeps filtering at the floor (0: off; see
             ``_reset_unused``; default 0.3 since session 9, docs/faults.md).
         race_floor_first: ``race_floor`` holds only while no fault is declared (default).
+        tangent_order: Taylor degree of the zero-order hold through which the cache's
+            derivatives in the magnitudes are taken (0: the hold's own, 12); a cheaper
+            rebuild that moves the outputs in the last digits (docs/faults.md, "Cost",
+            "Session 10"; continuous linear plants only).
     """
 
     walk: float = 1e-3
@@ -93,6 +97,7 @@ class EstSettings(NamedTuple):
     post_floor_mean: float = 0.0
     race_floor: float = 0.3
     race_floor_first: bool = True
+    tangent_order: int = 0
 
 
 class EstState(NamedTuple):
