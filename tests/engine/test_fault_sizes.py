@@ -156,6 +156,32 @@ def test_augmented_jacobian_matches_autodiff_of_the_exact_dynamics():
         )
 
 
+def test_tangent_order_keeps_the_cache_and_nearly_the_derivatives():
+    # settings.tangent_order: derivatives through a lower-degree zero-order hold; the cache
+    # itself is the full one, bit for bit, and degree 6 is within rounding at |a| <= 3.
+    import jax
+    import jax.numpy as jnp
+
+    from uimm_jax.engine.uimm_est import EstSettings, build_diagnoser
+
+    diag = _est_setup().diagnoser
+    sets = diag.model_sets(jnp.array([True, False, True]))
+    a0 = jnp.asarray(np.random.default_rng(1).uniform(0.05, 3.0, (3, 4)))
+    prep = jax.jit(diag.aug.prepare, static_argnums=2)
+    full = prep(sets, a0, 0)
+    for order, tol in ((6, 1e-12), (2, None)):
+        cheap = prep(sets, a0, order)
+        for a, b in zip(jax.tree.leaves(cheap.base), jax.tree.leaves(full.base), strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        err = max(
+            float(np.max(np.abs(np.asarray(a) - np.asarray(b))) / np.max(np.abs(np.asarray(b))))
+            for a, b in zip(jax.tree.leaves(cheap.jac), jax.tree.leaves(full.jac), strict=True)
+        )
+        assert err < tol if tol else err > 1e-6, (order, err)  # degree 2 is visibly off
+    with pytest.raises(ValueError, match="settings.tangent_order"):
+        build_diagnoser("uimm-est", diag.dyn, diag.table, settings=EstSettings(tangent_order=13))
+
+
 def test_augmented_structured_algebra_equals_the_full_products():
     # predict_cov uses F = [[G], [0, I]] and observe a constant H = [C, 0]: the results must
     # be those of the dense (n + F) x (n + F) algebra, entry for entry.

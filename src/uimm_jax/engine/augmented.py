@@ -78,25 +78,37 @@ class AugmentedDynamics:
         self.n = int(n)
         self.F = table.num_faults
 
-    def prepare(self, sets: jax.Array, a0: jax.Array) -> AugCache:
+    def prepare(self, sets: jax.Array, a0: jax.Array, tangent_order: int = 0) -> AugCache:
         """The cache of fault sets ``(F, *batch)`` at reference magnitudes ``(F, *batch)``.
 
         The ``F`` derivatives go through one vmapped ``jvp`` (the primal once, the tangents
         as a batch): a rebuild measured 2.5-3.7 against 3.4-4.6 us per run for ``F``
         separate ``jvp`` calls (docs/faults.md, "Cost").
+
+        ``tangent_order`` (``0``: off): for a continuous linear plant whose zero-order hold
+        has a higher Taylor degree (``zoh_order``), the derivatives are those of the hold
+        of this degree, and the cache itself is still the full one (computed apart, the
+        same numbers).  The derivatives' truncation is ``~|b|^(q+1) / (q+1)!`` relative
+        (``|b| <= 1/16`` at the library's values): far below the first-order expansion's
+        own error (docs/faults.md, "Cost", "Session 10").
         """
         dtype = a0.dtype
+        full = getattr(self.base, "zoh_order", None)
+        cheap = bool(tangent_order) and full is not None and tangent_order < full
 
         def cache_of(a):
-            return self.base.prepare(thetas_for_magnitudes(self.table, sets, a, dtype))
+            theta = thetas_for_magnitudes(self.table, sets, a, dtype)
+            return (
+                self.base.prepare(theta, order=tangent_order) if cheap else self.base.prepare(theta)
+            )
 
         tangents = jnp.broadcast_to(
             jnp.asarray(np.eye(self.F), dtype).reshape((self.F,) * 2 + (1,) * (a0.ndim - 1)),
             (self.F,) + a0.shape,
         )
-        base, jac = jax.vmap(lambda t: jax.jvp(cache_of, (a0,), (t,)), out_axes=(None, 0))(
-            tangents
-        )
+        base, jac = jax.vmap(lambda t: jax.jvp(cache_of, (a0,), (t,)), out_axes=(None, 0))(tangents)
+        if cheap:  # the cache itself at the full degree
+            base = self.base.prepare(thetas_for_magnitudes(self.table, sets, a0, dtype))
         jac = tuple(jax.tree.map(lambda leaf, k=k: leaf[k], jac) for k in range(self.F))
         return AugCache(base, jac, a0, sets)
 

@@ -99,7 +99,19 @@ def _batched_call(fn, theta: jax.Array, n_out: int):
     return res
 
 
-def zoh(A: jax.Array, B: jax.Array, dt: float, *, balance=None, squarings: int = 0):
+ZOH_ORDER = 12
+"""Taylor degree of the zero-order hold (:func:`uimm_jax.engine._block.expm`'s default)."""
+
+
+def zoh(
+    A: jax.Array,
+    B: jax.Array,
+    dt: float,
+    *,
+    balance=None,
+    squarings: int = 0,
+    order: int = ZOH_ORDER,
+):
     """Exact zero-order-hold discretisation of a bank ``A (n, n, *b)``, ``B (n, p, *b)``.
 
     ``[[Ad, Bd], [0, I]] = expm([[A, B], [0, 0]] dt)`` (paper eq. 10), block arithmetic
@@ -111,6 +123,7 @@ def zoh(A: jax.Array, B: jax.Array, dt: float, *, balance=None, squarings: int =
         dt: sampling time.
         balance: static balancing diagonal for the augmented ``(n+p)`` matrix.
         squarings: static number of squarings in the matrix exponential.
+        order: degree of its Taylor polynomial (:func:`uimm_jax.engine._block.expm`).
 
     Returns:
         ``(Ad, Bd)``.
@@ -118,7 +131,7 @@ def zoh(A: jax.Array, B: jax.Array, dt: float, *, balance=None, squarings: int =
     n, p = A.shape[0], B.shape[1]
     top = jnp.concatenate([A, B], axis=1) * dt
     aug = jnp.concatenate([top, jnp.zeros((p, n + p) + top.shape[2:], top.dtype)], axis=0)
-    E = bk.expm(aug, balance=balance, squarings=squarings, zero_rows=p)  # the top n rows
+    E = bk.expm(aug, balance=balance, squarings=squarings, zero_rows=p, order=order)  # top n rows
     return E[:, :n], E[:, n:]
 
 
@@ -240,8 +253,17 @@ class LinearDynamics(_LinearBank):
             np.asarray(d, np.float64),
         )
 
-    def prepare(self, theta: jax.Array) -> LinearCache:
-        """Discretise every model; ``theta`` is ``(P, *batch)``."""
+    @property
+    def zoh_order(self) -> int | None:
+        """Taylor degree of the zero-order hold's matrix exponential (None: discrete time)."""
+        return ZOH_ORDER if self.plant.time == "continuous" else None
+
+    def prepare(self, theta: jax.Array, order: int = 0) -> LinearCache:
+        """Discretise every model; ``theta`` is ``(P, *batch)``.
+
+        ``order`` (continuous time): the zero-order hold's Taylor degree (0: ``ZOH_ORDER``);
+        a lower one serves the derivatives of :mod:`uimm_jax.engine.augmented` only.
+        """
 
         def fn(th):
             A, B, C, d = self.plant.matrices(self.plant.params(th))
@@ -255,7 +277,14 @@ class LinearDynamics(_LinearBank):
 
         A, B, C, d = _batched_call(fn, theta, 4)
         if self.plant.time == "continuous":
-            A, B = zoh(A, B, self.dt, balance=self.balance, squarings=self.squarings)
+            A, B = zoh(
+                A,
+                B,
+                self.dt,
+                balance=self.balance,
+                squarings=self.squarings,
+                order=order or ZOH_ORDER,
+            )
         return LinearCache(
             A, B, None if self.const_C is not None else C, None if self.const_d is not None else d
         )

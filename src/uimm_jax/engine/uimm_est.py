@@ -171,7 +171,7 @@ class UIMMEstDiagnoser(Diagnoser):
 
     def _cache(self, declared: jax.Array, a0: jax.Array) -> AugCache:
         """The augmented cache of the bank of ``declared`` at magnitudes ``(F, M, *runs)``."""
-        return self.aug.prepare(self.model_sets(declared), a0)
+        return self.aug.prepare(self.model_sets(declared), a0, self.settings.tangent_order)
 
     def prepare(self, declared: jax.Array, dtype) -> Any:
         """The cache at the prior magnitudes (see :meth:`init`)."""

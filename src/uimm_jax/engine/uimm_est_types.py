@@ -84,6 +84,11 @@ class EstSettings(NamedTuple):
             the prior either, but keeps filtering at the floor (0: off; see
             ``_reset_unused``; default 0.3 since session 9, docs/faults.md).
         race_floor_first: ``race_floor`` holds only while no fault is declared (default).
+        tangent_order: Taylor degree of the zero-order hold through which the cache's
+            derivatives in the magnitudes are taken (0: the hold's own, 12); a cheaper
+            rebuild that moves the outputs in the last digits (default 6 since session 10:
+            the same acceptance cells, a step 8-9 % cheaper; docs/faults.md, "Cost",
+            "Session 10"; continuous linear plants only).
     """
 
     walk: float = 1e-3
@@ -111,6 +116,7 @@ class EstSettings(NamedTuple):
     post_floor_mean: float = 0.0
     race_floor: float = 0.3
     race_floor_first: bool = True
+    tangent_order: int = 6
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -139,8 +145,9 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "retract_hold": (0, False, "samples; 0: the filter's hold"),
     "post_floor_mean": (0.0, False, "a magnitude; 0: off"),
     "race_floor": (0.0, False, "a magnitude; 0: off"),
+    "tangent_order": (0, False, "a Taylor degree; 0: the cache's own degree"),
 }
-_HIGH = {"restart_below": 1.0}
+_HIGH = {"restart_below": 1.0, "tangent_order": 12}
 
 
 def _kind(name: str) -> type:
@@ -180,14 +187,15 @@ def est_setting_problem(name: str, value: Any) -> str | None:
         return f"true or false, got {type_name(value)}; write true or false"
     low, low_open, what = _RULES[name]
     if kind is int:
-        if integer_problem(value, int(low), MAX_INT32) is None:
+        top = int(_HIGH.get(name, MAX_INT32))
+        if integer_problem(value, int(low), top) is None:
             return None
         got = type_name(value)
         if isinstance(value, numbers.Integral) and not isinstance(value, bool):
             got = str(int(value))
         elif is_number(value) and math.isfinite(value) and float(value).is_integer():
             got += f"; write {int(value)} (no decimal point)"
-        return f"an integer in [{int(low)}, {MAX_INT32}] ({what}), got {got}"
+        return f"an integer in [{int(low)}, {top}] ({what}), got {got}"
     high = _HIGH.get(name)
     rng = ("> " if low_open else ">= ") + f"{low:g}" if high is None else f"in ({low:g}, {high:g}]"
     if not is_number(value):
