@@ -306,7 +306,12 @@ def main() -> None:
             name, _, value = item.partition("=")
             if name not in d:
                 p.error(f"--set: {name!r} is not an EstSettings field ({', '.join(fields)})")
-            d[name] = type(d[name])(float(value)) if value else p.error(f"--set: {item!r}")
+            if not value:
+                p.error(f"--set: {item!r}")
+            if isinstance(d[name], tuple):  # a per-fault value: v1,v2,...
+                d[name] = tuple(float(v) for v in value.split(","))
+            else:
+                d[name] = type(d[name])(float(value))
         ue.EstSettings.__new__.__defaults__ = tuple(d.values())
     t0 = time.perf_counter()
     if args.part == "sizes":

@@ -66,6 +66,18 @@ class EstSettings(NamedTuple):
             the prior either, but keeps filtering at the floor (0: off; see
             ``_reset_unused``; default 0.3 since session 9, docs/faults.md).
         race_floor_first: ``race_floor`` holds only while no fault is declared (default).
+        post_floor_means: per fault (the fault table's order), ``post_floor_mean`` of
+            that fault's hypothesis (empty: ``post_floor_mean`` for all): a floor in each
+            fault's own units (air in oil's 0.02 lowers ``Eh`` by 4.5 %, more than all of
+            valve wear at 0.3; docs/faults.md, "Session 10").
+        settle_move: with ``walk_settled``, a declared fault's age (``since``) restarts
+            whenever model 0's estimate has moved more than this many of its standard
+            deviations away from nominal since the last such move (``EstState.anchor``),
+            so that a fault settles only once it has stopped growing; a move towards
+            nominal only moves the anchor (0: off, the age counts from the declaration;
+            docs/faults.md, "Session 10").
+        settle_once: with ``settle_move``, a fault once settled stays settled (its age
+            restarts only before it first reaches ``settle_steps``).
     """
 
     walk: float = 1e-3
@@ -93,6 +105,9 @@ class EstSettings(NamedTuple):
     post_floor_mean: float = 0.0
     race_floor: float = 0.3
     race_floor_first: bool = True
+    post_floor_means: tuple[float, ...] = ()
+    settle_move: float = 0.0
+    settle_once: bool = False
 
 
 class EstState(NamedTuple):
@@ -109,7 +124,9 @@ class EstState(NamedTuple):
             prior, counted up to the largest gap of the settings (``restart_gap``,
             ``floor_gap``, ``post_gap``, ``post_floor_gap``, and ``settle_steps`` with
             ``walk_settled``, when it is also a declared fault's age: reset on its
-            declaration).
+            declaration; with ``settle_move`` also on a move away from nominal).
+        anchor: ``(F, *runs)`` model 0's estimate of each declared fault at its last move
+            (``settle_move``; zeros while it is off).
     """
 
     imm: IMMState
@@ -119,6 +136,7 @@ class EstState(NamedTuple):
     run_len: jax.Array
     low_len: jax.Array
     since: jax.Array
+    anchor: jax.Array
 
 
 class EstInfo(NamedTuple):
