@@ -28,7 +28,9 @@ declared fault's walk grows with its size while it is the only declared fault
 While a fault is declared, ``walk_settled``, ``post_gap``, ``post_floor_gap`` and
 ``retract_hold`` (off by default; docs/faults.md, "Session 8: after a declaration")
 change these rules, and ``walk_rel_newest`` and ``post_floor_mean`` (off by default;
-docs/faults.md, "Session 9") those for a second fault.
+docs/faults.md, "Session 9") those for a second fault; ``post_floor_means`` (a floor per
+fault) and ``settle_move`` (a fault settles only once its estimate stops growing) refine
+them (off by default; docs/faults.md, "Session 10").
 An undeclared hypothesis' own magnitude is kept ``>= floor_mean`` (and its standard
 deviation ``>= floor_sd``), so that it means "a fault" and does not settle on nominal in
 fault-free data; ``floor_mean`` is below ``declare_min`` so that the bound never decides
@@ -119,8 +121,6 @@ def _moved(s: EstSettings, declared, est, est_sd, since, anchor):
     """
     far = declared & (jnp.abs(est - anchor) > s.settle_move * est_sd)
     grew = far & (jnp.abs(est) > jnp.abs(anchor))
-    if s.settle_once:  # a settled fault stays settled
-        grew = grew & (since < s.settle_steps)
     return jnp.where(grew, 0, since), jnp.where(far, est, anchor)
 
 

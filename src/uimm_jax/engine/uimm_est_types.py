@@ -76,8 +76,6 @@ class EstSettings(NamedTuple):
             so that a fault settles only once it has stopped growing; a move towards
             nominal only moves the anchor (0: off, the age counts from the declaration;
             docs/faults.md, "Session 10").
-        settle_once: with ``settle_move``, a fault once settled stays settled (its age
-            restarts only before it first reaches ``settle_steps``).
     """
 
     walk: float = 1e-3
@@ -107,7 +105,6 @@ class EstSettings(NamedTuple):
     race_floor_first: bool = True
     post_floor_means: tuple[float, ...] = ()
     settle_move: float = 0.0
-    settle_once: bool = False
 
 
 class EstState(NamedTuple):
