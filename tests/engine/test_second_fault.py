@@ -66,3 +66,52 @@ def test_post_floor_mean_bounds_a_challenger_only_while_a_fault_is_declared():
         np.testing.assert_allclose(got[n + 2, 3], want)  # air in oil's own hypothesis (slot 3)
         np.testing.assert_allclose(got[n + 1, 2], want)  # leakage's (slot 2)
         np.testing.assert_allclose(got[n, 1], [0.0, s.floor_mean])  # declared: untouched
+
+
+def test_post_floor_means_bound_each_challenger_at_its_own_floor():
+    """``post_floor_means``: one floor per fault while a fault is declared (session 10)."""
+    import jax.numpy as jnp
+
+    from uimm_jax.engine.imm import IMMState
+
+    diag = _diag()
+    n, F, M = diag.dyn.n, diag.num_faults, diag.num_models
+    cov = np.broadcast_to(np.eye(n + F)[..., None, None] * 0.01, (n + F, n + F, M, 2)).copy()
+    state = IMMState(jnp.zeros((n + F, M, 2)), jnp.asarray(cov), jnp.zeros((M, 2)))
+    declared = jnp.asarray([[True, False], [False, False], [False, False]])  # run 0: valve wear
+    s = diag.settings._replace(post_floor_mean=0.02, post_floor_means=(0.01, 0.03, 0.002))
+    got = np.asarray(dataclasses.replace(diag, settings=s)._floor(state, declared).mean)
+    np.testing.assert_allclose(got[n + 2, 3], [0.002, s.floor_mean])  # air in oil (slot 3)
+    np.testing.assert_allclose(got[n + 1, 2], [0.03, s.floor_mean])  # leakage (slot 2)
+    np.testing.assert_allclose(got[n, 1], [0.0, s.floor_mean])  # declared: untouched
+
+
+def test_post_floor_means_needs_one_floor_per_fault():
+    import pytest
+
+    from uimm_jax.engine.uimm_est import EstSettings, build_diagnoser
+
+    diag = _diag()
+    bad = EstSettings(post_floor_means=(0.02, 0.002))
+    msg = r"settings.post_floor_means: expected one floor per fault \(3"
+    with pytest.raises(ValueError, match=msg):
+        build_diagnoser("uimm-est", diag.dyn, diag.table, settings=bad)
+
+
+def test_settle_move_restarts_a_fault_s_age_only_when_its_estimate_grows():
+    """``settle_move``: a move of more than ``settle_move`` sd away from nominal restarts
+    the age and re-anchors; a move towards nominal only re-anchors; a small move neither."""
+    import jax.numpy as jnp
+
+    from uimm_jax.engine.uimm_est import EstSettings, _moved
+
+    s = EstSettings(walk_settled=3e-5, settle_steps=100, settle_move=5.0)
+    # runs: grew (0.5 -> 0.6, sd 0.01), shrank (0.5 -> 0.4), small move, not declared
+    declared = jnp.asarray([[True, True, True, False]])
+    anchor = jnp.asarray([[0.5, 0.5, 0.5, 0.5]])
+    est = jnp.asarray([[0.6, 0.4, 0.54, 0.9]])
+    sd = jnp.full((1, 4), 0.01)
+    since = jnp.asarray([[150, 150, 150, 150]], jnp.int32)
+    new_since, new_anchor = _moved(s, declared, est, sd, since, anchor)
+    np.testing.assert_array_equal(new_since, [[0, 150, 150, 150]])
+    np.testing.assert_allclose(new_anchor, [[0.6, 0.4, 0.5, 0.5]])

@@ -28,7 +28,9 @@ declared fault's walk grows with its size while it is the only declared fault
 While a fault is declared, ``walk_settled``, ``post_gap``, ``post_floor_gap`` and
 ``retract_hold`` (off by default; docs/faults.md, "Session 8: after a declaration")
 change these rules, and ``walk_rel_newest`` and ``post_floor_mean`` (off by default;
-docs/faults.md, "Session 9") those for a second fault.
+docs/faults.md, "Session 9") those for a second fault; ``post_floor_means`` (a floor per
+fault) and ``settle_move`` (a fault settles only once its estimate stops growing) refine
+them (off by default; docs/faults.md, "Session 10").
 An undeclared hypothesis' own magnitude is kept ``>= floor_mean`` (and its standard
 deviation ``>= floor_sd``), so that it means "a fault" and does not settle on nominal in
 fault-free data; ``floor_mean`` is below ``declare_min`` so that the bound never decides
@@ -86,8 +88,16 @@ def _gap_cap(s: EstSettings) -> int:
     return max(*gaps, s.settle_steps if s.walk_settled else 0)
 
 
-def _floor_mean(s: EstSettings, any_decl: jax.Array):
-    """An undeclared hypothesis' floor: ``post_floor_mean`` (if set) while a fault is declared."""
+def _floor_mean(s: EstSettings, any_decl: jax.Array, models: bool = False):
+    """An undeclared hypothesis' floor: ``post_floor_mean`` (if set) while a fault is declared.
+
+    With ``post_floor_means`` the floor is per fault, shaped ``(F, *runs)`` (``(F, 1,
+    *runs)`` with ``models``, against the magnitudes of every model).
+    """
+    if s.post_floor_means:
+        per = np.asarray(s.post_floor_means, np.float64)
+        per = per.reshape((-1,) + (1,) * (any_decl.ndim + models))
+        return jnp.where(any_decl, per, s.floor_mean)
     if s.post_floor_mean <= 0:
         return s.floor_mean
     return jnp.where(any_decl, s.post_floor_mean, s.floor_mean)
@@ -97,6 +107,21 @@ def _newest(declared: jax.Array, since: jax.Array) -> jax.Array:
     """``(F, *runs)``: the declared fault(s) of the smallest age ``since`` (``walk_settled``)."""
     age = jnp.where(declared, since, jnp.iinfo(jnp.int32).max)
     return declared & (age == jnp.min(age, axis=0))
+
+
+def _moved(s: EstSettings, declared, est, est_sd, since, anchor):
+    """``settle_move``: a declared fault's age restarts when its estimate grows.
+
+    A move of more than ``settle_move`` standard deviations from ``anchor`` re-anchors the
+    estimate; a move away from nominal (the fault grew) also restarts its age ``since``,
+    so that ``walk_settled`` acts only once the fault has stopped growing.  A move
+    towards nominal does not: a settled estimate pulled down by a new fault that cancels
+    it (valve wear and air in oil in the input gain) must stay settled (docs/faults.md,
+    "Session 10").  Returns the new ``since`` and ``anchor``.
+    """
+    far = declared & (jnp.abs(est - anchor) > s.settle_move * est_sd)
+    grew = far & (jnp.abs(est) > jnp.abs(anchor))
+    return jnp.where(grew, 0, since), jnp.where(far, est, anchor)
 
 
 def _own_slots(F: int, nd: int) -> np.ndarray:
@@ -195,6 +220,7 @@ class UIMMEstDiagnoser(Diagnoser):
             base.run_len,
             jnp.zeros((F,) + tuple(runs), jnp.int32),
             jnp.full((F,) + tuple(runs), _gap_cap(s), jnp.int32),
+            jnp.zeros((F,) + tuple(runs), dtype),
         )
 
     def _reset_unused(self, st: IMMState, use: jax.Array, declared: jax.Array, since):
@@ -284,7 +310,7 @@ class UIMMEstDiagnoser(Diagnoser):
         """
         n, F, s = self.dyn.n, self.num_faults, self.settings
         hyp = (~declared)[:, None] & _own_slots(F, declared.ndim - 1)  # (F, M, *runs)
-        floor = _floor_mean(s, jnp.any(declared, axis=0))
+        floor = _floor_mean(s, jnp.any(declared, axis=0), models=True)
         mean = st.mean.at[n:].set(jnp.where(hyp, jnp.maximum(st.mean[n:], floor), st.mean[n:]))
         var = _mag_var(st.cov, n)
         add = jnp.where(hyp, jnp.maximum(s.floor_sd**2 - var, 0.0), 0.0)
@@ -402,6 +428,10 @@ class UIMMEstDiagnoser(Diagnoser):
         new_declared = jnp.where(retract, False, dec.declared)
         imm_state, cache = self._handover(imm_state, state.cache, winner, changed, new_declared)
         imm_state = self._reopen(imm_state, new_declared & ~declared)
+        anchor = state.anchor
+        if s.walk_settled and s.settle_move > 0:  # a fault still growing is not settled
+            since, anchor = _moved(s, declared, est, est_sd, since, anchor)
+            anchor = jnp.where(new_declared & ~declared, est, anchor)
         if s.walk_settled:  # since: a declared fault's age; a retracted one is due again
             since = jnp.where(new_declared & ~declared, 0, since)
             since = jnp.where(retract, _gap_cap(s), since).astype(jnp.int32)
@@ -413,6 +443,7 @@ class UIMMEstDiagnoser(Diagnoser):
             jnp.where(any_ret, 0, dec.run_len),
             low_len,
             since,
+            anchor,
         )
         recognised = jnp.where(any_ret, new_declared, dec.candidate_set)
         step_info = info._replace(
@@ -557,4 +588,10 @@ def build_diagnoser(
             raise
     fixed = _build_fixed("uimm", dyn, table, gate=gate)  # the shared argument checks
     settings = EstSettings() if settings is None else check_est_settings(settings)
+    F = len(fixed.table.names)
+    if settings.post_floor_means and len(settings.post_floor_means) != F:
+        raise ValueError(
+            f"settings.post_floor_means: expected one floor per fault ({F}: "
+            f"{', '.join(fixed.table.names)}), got {len(settings.post_floor_means)}"
+        )
     return UIMMEstDiagnoser(fixed.dyn, fixed.table, fixed.gate, settings)

@@ -89,6 +89,16 @@ class EstSettings(NamedTuple):
             rebuild that moves the outputs in the last digits (default 6 since session 10:
             the same acceptance cells, a step 8-9 % cheaper; docs/faults.md, "Cost",
             "Session 10"; continuous linear plants only).
+        post_floor_means: per fault (the fault table's order), ``post_floor_mean`` of
+            that fault's hypothesis (empty: ``post_floor_mean`` for all): a floor in each
+            fault's own units (air in oil's 0.02 lowers ``Eh`` by 4.5 %, more than all of
+            valve wear at 0.3; docs/faults.md, "Session 10").
+        settle_move: with ``walk_settled``, a declared fault's age (``since``) restarts
+            whenever model 0's estimate has moved more than this many of its standard
+            deviations away from nominal since the last such move (``EstState.anchor``),
+            so that a fault settles only once it has stopped growing; a move towards
+            nominal only moves the anchor (0: off, the age counts from the declaration;
+            docs/faults.md, "Session 10").
     """
 
     walk: float = 1e-3
@@ -117,6 +127,8 @@ class EstSettings(NamedTuple):
     race_floor: float = 0.3
     race_floor_first: bool = True
     tangent_order: int = 6
+    post_floor_means: tuple[float, ...] = ()
+    settle_move: float = 0.0
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -146,6 +158,8 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "post_floor_mean": (0.0, False, "a magnitude; 0: off"),
     "race_floor": (0.0, False, "a magnitude; 0: off"),
     "tangent_order": (0, False, "a Taylor degree; 0: the cache's own degree"),
+    "post_floor_means": (0.0, False, "magnitudes, one per fault; empty: off"),
+    "settle_move": (0.0, False, "standard deviations; 0: off"),
 }
 _HIGH = {"restart_below": 1.0, "tangent_order": 12}
 
@@ -186,6 +200,13 @@ def est_setting_problem(name: str, value: Any) -> str | None:
             return None
         return f"true or false, got {type_name(value)}; write true or false"
     low, low_open, what = _RULES[name]
+    if kind is tuple:  # one number per fault (the length is checked by build_diagnoser)
+        items = list(value) if isinstance(value, list | tuple) else None
+        if items is None or not all(
+            is_number(v) and math.isfinite(v) and v >= low for v in items
+        ):
+            return f"a list of finite numbers >= {low:g} ({what}), got {value!r}"
+        return None
     if kind is int:
         top = int(_HIGH.get(name, MAX_INT32))
         if integer_problem(value, int(low), top) is None:
@@ -238,7 +259,10 @@ def est_settings(
         problem = est_setting_problem(key, value)
         if problem:
             raise ValueError(f"{name}.{key}: expected {problem}")
-    changes = {key: _kind(key)(value) for key, value in values.items()}
+    changes = {
+        key: tuple(float(v) for v in value) if _kind(key) is tuple else _kind(key)(value)
+        for key, value in values.items()
+    }
     return (EstSettings() if base is None else base)._replace(**changes)
 
 
@@ -250,6 +274,8 @@ def est_value_from_text(name: str, text: str) -> Any:
     returned as it is (and refused by the check, naming the setting).
     """
     text = text.strip()
+    if name in EstSettings._fields and _kind(name) is tuple:
+        return [est_value_from_text("", part) for part in text.split(",") if part.strip()]
     if name in EstSettings._fields and _kind(name) is bool:
         flag = {"true": True, "1": True, "false": False, "0": False}.get(text.lower())
         if flag is not None:
@@ -276,7 +302,9 @@ class EstState(NamedTuple):
             prior, counted up to the largest gap of the settings (``restart_gap``,
             ``floor_gap``, ``post_gap``, ``post_floor_gap``, and ``settle_steps`` with
             ``walk_settled``, when it is also a declared fault's age: reset on its
-            declaration).
+            declaration; with ``settle_move`` also on a move away from nominal).
+        anchor: ``(F, *runs)`` model 0's estimate of each declared fault at its last move
+            (``settle_move``; zeros while it is off).
     """
 
     imm: IMMState
@@ -286,6 +314,7 @@ class EstState(NamedTuple):
     run_len: jax.Array
     low_len: jax.Array
     since: jax.Array
+    anchor: jax.Array
 
 
 class EstInfo(NamedTuple):
