@@ -28,7 +28,9 @@ declared fault's walk grows with its size while it is the only declared fault
 While a fault is declared, ``walk_settled``, ``post_gap``, ``post_floor_gap`` and
 ``retract_hold`` (off by default; docs/faults.md, "Session 8: after a declaration")
 change these rules, and ``walk_rel_newest`` and ``post_floor_mean`` (off by default;
-docs/faults.md, "Session 9") those for a second fault.
+docs/faults.md, "Session 9") those for a second fault.  With ``rate_steps`` (off by
+default) a declared fault's magnitude also carries a rate, so that a growing fault is
+followed without lag by a small walk (docs/faults.md, "Session 10: a magnitude rate").
 An undeclared hypothesis' own magnitude is kept ``>= floor_mean`` (and its standard
 deviation ``>= floor_sd``), so that it means "a fault" and does not settle on nominal in
 fault-free data; ``floor_mean`` is below ``declare_min`` so that the bound never decides
@@ -72,6 +74,7 @@ from uimm_jax.engine.decision import decide
 from uimm_jax.engine.imm import IMMParams, IMMState, imm_step
 from uimm_jax.engine.uimm import Diagnoser, DiagParams, _pick_model
 from uimm_jax.engine.uimm import build_diagnoser as _build_fixed
+from uimm_jax.engine.uimm_est_rate import drift, rate_on, rate_update
 from uimm_jax.engine.uimm_est_types import EstInfo, EstSettings, EstState
 
 __all__ = ["EstInfo", "EstSettings", "EstState", "UIMMEstDiagnoser", "build_diagnoser"]
@@ -195,6 +198,7 @@ class UIMMEstDiagnoser(Diagnoser):
             base.run_len,
             jnp.zeros((F,) + tuple(runs), jnp.int32),
             jnp.full((F,) + tuple(runs), _gap_cap(s), jnp.int32),
+            jnp.zeros((F,) + tuple(runs), dtype) if rate_on(s) else None,
         )
 
     def _reset_unused(self, st: IMMState, use: jax.Array, declared: jax.Array, since):
@@ -357,6 +361,11 @@ class UIMMEstDiagnoser(Diagnoser):
             pad = jnp.concatenate([jnp.zeros((n,) + extra.shape[1:], dtype), extra])
             eye = np.eye(n + F).reshape((n + F, n + F, 1) + (1,) * (extra.ndim - 1))
             q_aug = q_aug.reshape(q_aug.shape + (1,) * extra.ndim) + eye * pad[:, None, None]
+        if rate_on(s):  # a declared fault grows at its rate (constant-velocity model)
+            imm0, pred0 = drift(imm0, n, declared, state.rate)
+            q0 = jnp.moveaxis(jnp.diagonal(q_aug[n:, n:], axis1=0, axis2=1), -1, 0)
+            q0 = q0[:, 0] if q0.ndim > 1 else q0.reshape((F,) + (1,) * (declared.ndim - 1))
+            var0 = _mag_var(imm0.cov, n)[:, 0] + q0
         imm_params = IMMParams(params.imm.log_transition, q_aug, params.imm.R)
         imm_state, info = imm_step(
             self.aug, imm0, state.cache, imm_params, u, y, gate=self.gate, with_cov=with_cov
@@ -368,6 +377,9 @@ class UIMMEstDiagnoser(Diagnoser):
         pick = slot[:, None] == np.arange(self.num_models).reshape((1, -1) + (1,) * (slot.ndim - 1))
         est = jnp.sum(jnp.where(pick, mags, 0.0), axis=1)  # (F, *runs)
         est_sd = jnp.sqrt(jnp.maximum(jnp.sum(jnp.where(pick, var, 0.0), axis=1), 0.0))
+        rate = state.rate
+        if rate_on(s):  # the rate takes a share of model 0's correction
+            rate = rate_update(s, rate, var0, var[:, 0], est - pred0)
 
         def cand_set(c):
             full = self._candidate_set(c, declared)
@@ -413,6 +425,7 @@ class UIMMEstDiagnoser(Diagnoser):
             jnp.where(any_ret, 0, dec.run_len),
             low_len,
             since,
+            None if rate is None else jnp.where(declared & new_declared, rate, 0.0),
         )
         recognised = jnp.where(any_ret, new_declared, dec.candidate_set)
         step_info = info._replace(
@@ -553,8 +566,11 @@ def build_diagnoser(
                     f"method: expected 'uimm', 'imm' or 'uimm-est', got {method!r}"
                 ) from None
             raise
-    fixed = _build_fixed("uimm", dyn, table, gate=gate)  # the shared argument checks
     settings = EstSettings() if settings is None else settings
     if not isinstance(settings, EstSettings):
         raise TypeError(f"settings: expected EstSettings, got {type(settings).__name__}")
+    for name in ("rate_steps", "rate_decay"):
+        if (value := getattr(settings, name)) < 0:
+            raise ValueError(f"settings.{name}: expected >= 0 (0: off), got {value}")
+    fixed = _build_fixed("uimm", dyn, table, gate=gate)  # the shared argument checks
     return UIMMEstDiagnoser(fixed.dyn, fixed.table, fixed.gate, settings)

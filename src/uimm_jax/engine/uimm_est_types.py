@@ -66,6 +66,16 @@ class EstSettings(NamedTuple):
             the prior either, but keeps filtering at the floor (0: off; see
             ``_reset_unused``; default 0.3 since session 9, docs/faults.md).
         race_floor_first: ``race_floor`` holds only while no fault is declared (default).
+        rate_steps: a declared fault's magnitude carries a rate (magnitude per step: the
+            constant-velocity model of a growing fault); before each step every model's
+            estimate moves by the rate, after it the rate takes ``1 / rate_steps`` of
+            model 0's correction of the estimate (0: off; see ``drift``; docs/faults.md,
+            "Session 10: a magnitude rate").
+        rate_auto: the rate's share is the constant-velocity model's steady-state gain at
+            model 0's variance reduction of the magnitude in the step (see ``rate_gain``;
+            on even with ``rate_steps`` 0).
+        rate_decay: with a rate, it decays by ``1 - 1 / rate_decay`` per step (0: none;
+            see ``rate_update``).
     """
 
     walk: float = 1e-3
@@ -93,6 +103,9 @@ class EstSettings(NamedTuple):
     post_floor_mean: float = 0.0
     race_floor: float = 0.3
     race_floor_first: bool = True
+    rate_steps: int = 0
+    rate_auto: bool = False
+    rate_decay: int = 0
 
 
 class EstState(NamedTuple):
@@ -110,6 +123,8 @@ class EstState(NamedTuple):
             ``floor_gap``, ``post_gap``, ``post_floor_gap``, and ``settle_steps`` with
             ``walk_settled``, when it is also a declared fault's age: reset on its
             declaration).
+        rate: ``(F, *runs)`` each declared fault's magnitude rate per step (0 for the
+            others), or ``None`` without ``rate_steps``.
     """
 
     imm: IMMState
@@ -119,6 +134,7 @@ class EstState(NamedTuple):
     run_len: jax.Array
     low_len: jax.Array
     since: jax.Array
+    rate: jax.Array | None = None
 
 
 class EstInfo(NamedTuple):
