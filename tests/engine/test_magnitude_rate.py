@@ -94,12 +94,15 @@ def test_drift_moves_only_declared_magnitudes_in_every_model():
     n, F, M = 2, 3, 4
     mean = jnp.arange((n + F) * M, dtype=jnp.float64).reshape(n + F, M)
     st = IMMState(mean, jnp.zeros((n + F, n + F, M)), jnp.zeros(M))
-    out, pred0 = drift(st, n, jnp.asarray([True, False, True]), jnp.asarray([0.5, 7.0, -1.0]))
+    declared, rate = jnp.asarray([True, False, True]), jnp.asarray([0.5, 7.0, -1.0])
+    out, pred0 = drift(EstSettings(rate_auto=True), st, n, declared, rate)
     expect = np.asarray(mean).copy()
     expect[n] += 0.5
     expect[n + 2] -= 1.0
     np.testing.assert_array_equal(out.mean, expect)
     np.testing.assert_array_equal(pred0, expect[n:, 0])
+    same, pred0 = drift(EstSettings(rate_steps=9, rate_walk=10.0), st, n, None, None)
+    assert same is st and np.array_equal(pred0, mean[n:, 0])  # rate_walk: means stay
 
 
 def test_rate_settings_are_off_by_default_and_checked():
@@ -107,7 +110,9 @@ def test_rate_settings_are_off_by_default_and_checked():
     from uimm_jax.engine.uimm_est import build_diagnoser
 
     s = EstSettings()
-    assert (s.rate_steps, s.rate_auto, s.rate_decay) == (0, False, 0)
-    for name in ("rate_steps", "rate_decay"):
+    assert (s.rate_steps, s.rate_auto, s.rate_decay, s.rate_walk) == (0, False, 0, 0.0)
+    for name in ("rate_steps", "rate_decay", "rate_walk"):
         with pytest.raises(ValueError, match=name):
             build_diagnoser("uimm-est", None, None, settings=EstSettings(**{name: -1}))
+    with pytest.raises(ValueError, match="rate_walk: needs rate_steps"):
+        build_diagnoser("uimm-est", None, None, settings=EstSettings(rate_walk=10.0))

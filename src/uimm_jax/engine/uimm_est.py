@@ -362,7 +362,11 @@ class UIMMEstDiagnoser(Diagnoser):
             eye = np.eye(n + F).reshape((n + F, n + F, 1) + (1,) * (extra.ndim - 1))
             q_aug = q_aug.reshape(q_aug.shape + (1,) * extra.ndim) + eye * pad[:, None, None]
         if rate_on(s):  # a declared fault grows at its rate (constant-velocity model)
-            imm0, pred0 = drift(imm0, n, declared, state.rate)
+            imm0, pred0 = drift(s, imm0, n, declared, state.rate)
+            if s.rate_walk:  # evidence of growth widens the walk instead (``drift``)
+                add = jnp.where(declared, (s.rate_walk * state.rate) ** 2, 0.0)[:, None]
+                add = jnp.broadcast_to(add, imm0.mean[n:].shape)
+                imm0 = imm0._replace(cov=_add_mag_var(imm0.cov, n, add))
             q0 = jnp.moveaxis(jnp.diagonal(q_aug[n:, n:], axis1=0, axis2=1), -1, 0)
             q0 = q0[:, 0] if q0.ndim > 1 else q0.reshape((F,) + (1,) * (declared.ndim - 1))
             var0 = _mag_var(imm0.cov, n)[:, 0] + q0
@@ -569,8 +573,10 @@ def build_diagnoser(
     settings = EstSettings() if settings is None else settings
     if not isinstance(settings, EstSettings):
         raise TypeError(f"settings: expected EstSettings, got {type(settings).__name__}")
-    for name in ("rate_steps", "rate_decay"):
+    for name in ("rate_steps", "rate_decay", "rate_walk"):
         if (value := getattr(settings, name)) < 0:
             raise ValueError(f"settings.{name}: expected >= 0 (0: off), got {value}")
+    if settings.rate_walk and not (settings.rate_steps or settings.rate_auto):
+        raise ValueError("settings.rate_walk: needs rate_steps > 0 (the growth's window)")
     fixed = _build_fixed("uimm", dyn, table, gate=gate)  # the shared argument checks
     return UIMMEstDiagnoser(fixed.dyn, fixed.table, fixed.gate, settings)

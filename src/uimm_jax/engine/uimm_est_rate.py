@@ -21,20 +21,23 @@ from uimm_jax.engine.uimm_est_types import EstSettings
 __all__ = ["drift", "rate_gain", "rate_on", "rate_update"]
 
 
-def drift(st, n: int, declared: jax.Array, rate: jax.Array):
+def drift(s: EstSettings, st, n: int, declared: jax.Array, rate: jax.Array):
     """Every model's estimate of a declared fault moved by its rate (``rate_steps``).
 
     The prediction of the constant-velocity model ``a[k+1] = a[k] + r[k]``; returns the
     state and model 0's predicted magnitudes ``(F, *runs)``, against which the rate is
-    corrected after the step.
+    corrected after the step.  With ``rate_walk`` the means stay (the rate is then only
+    the evidence of growth that widens the walk, in the diagnoser's step).
     """
+    if s.rate_walk:
+        return st, st.mean[n:, 0]
     mean = st.mean.at[n:].add(jnp.where(declared, rate, 0.0)[:, None])
     return st._replace(mean=mean), mean[n:, 0]
 
 
 def rate_on(s: EstSettings) -> bool:
     """Whether the declared magnitudes carry a rate (``rate_steps``, ``rate_auto``)."""
-    return bool(s.rate_steps or s.rate_auto)
+    return bool(s.rate_steps or s.rate_auto or s.rate_walk)
 
 
 def rate_gain(s: EstSettings, var_pred: jax.Array, var_post: jax.Array):

@@ -76,6 +76,10 @@ class EstSettings(NamedTuple):
             on even with ``rate_steps`` 0).
         rate_decay: with a rate, it decays by ``1 - 1 / rate_decay`` per step (0: none;
             see ``rate_update``).
+        rate_walk: with ``rate_steps``, the rate does not move the estimates; it is the
+            evidence of growth (the estimate's drift averaged over about ``rate_steps``
+            steps), and a declared fault's walk gains the variance ``(rate_walk * r)^2``
+            per step (0: off; the adaptive walk of docs/faults.md, "Session 10").
     """
 
     walk: float = 1e-3
@@ -106,6 +110,7 @@ class EstSettings(NamedTuple):
     rate_steps: int = 0
     rate_auto: bool = False
     rate_decay: int = 0
+    rate_walk: float = 0.0
 
 
 class EstState(NamedTuple):
