@@ -116,3 +116,20 @@ def test_rate_settings_are_off_by_default_and_checked():
             build_diagnoser("uimm-est", None, None, settings=EstSettings(**{name: -1}))
     with pytest.raises(ValueError, match="rate_walk: needs rate_steps"):
         build_diagnoser("uimm-est", None, None, settings=EstSettings(rate_walk=10.0))
+
+
+def test_growth_walk_counts_only_drift_beyond_its_noise():
+    """``rate_walk``: no extra walk for a drift within ``GROWTH_Z`` standard deviations of
+    a constant fault's average increment (a falling one included); beyond, the walk's
+    standard deviation grows as ``rate_walk`` times the excess."""
+    from uimm_jax.engine.uimm_est_rate import GROWTH_Z, growth_walk
+
+    s = EstSettings(rate_steps=20000, rate_walk=10.0)
+    q = jnp.asarray(9e-8)
+    noise_sd = float(jnp.sqrt(q / 40000))
+    for rate in (0.0, -1e-3, 0.99 * GROWTH_Z * noise_sd):
+        assert float(growth_walk(s, jnp.asarray(rate), q)) == 0.0
+    big = 1e-3  # far above the noise of a constant fault's average
+    sd = np.sqrt(float(growth_walk(s, jnp.asarray(big), q)))
+    # the walk's own noise at that sd raises the threshold: 10 (big - 3 sd / sqrt(40000))
+    assert sd == pytest.approx(10.0 * (big - GROWTH_Z * np.sqrt((9e-8 + 1e-4) / 40000)), rel=0.02)

@@ -74,7 +74,7 @@ from uimm_jax.engine.decision import decide
 from uimm_jax.engine.imm import IMMParams, IMMState, imm_step
 from uimm_jax.engine.uimm import Diagnoser, DiagParams, _pick_model
 from uimm_jax.engine.uimm import build_diagnoser as _build_fixed
-from uimm_jax.engine.uimm_est_rate import drift, rate_on, rate_update
+from uimm_jax.engine.uimm_est_rate import drift, growth_walk, rate_on, rate_update
 from uimm_jax.engine.uimm_est_types import EstInfo, EstSettings, EstState
 
 __all__ = ["EstInfo", "EstSettings", "EstState", "UIMMEstDiagnoser", "build_diagnoser"]
@@ -363,12 +363,12 @@ class UIMMEstDiagnoser(Diagnoser):
             q_aug = q_aug.reshape(q_aug.shape + (1,) * extra.ndim) + eye * pad[:, None, None]
         if rate_on(s):  # a declared fault grows at its rate (constant-velocity model)
             imm0, pred0 = drift(s, imm0, n, declared, state.rate)
-            if s.rate_walk:  # evidence of growth widens the walk instead (``drift``)
-                add = jnp.where(declared, (s.rate_walk * state.rate) ** 2, 0.0)[:, None]
-                add = jnp.broadcast_to(add, imm0.mean[n:].shape)
-                imm0 = imm0._replace(cov=_add_mag_var(imm0.cov, n, add))
             q0 = jnp.moveaxis(jnp.diagonal(q_aug[n:, n:], axis1=0, axis2=1), -1, 0)
             q0 = q0[:, 0] if q0.ndim > 1 else q0.reshape((F,) + (1,) * (declared.ndim - 1))
+            if s.rate_walk:  # evidence of growth widens the walk instead (``drift``)
+                add = jnp.where(declared, growth_walk(s, state.rate, q0), 0.0)[:, None]
+                add = jnp.broadcast_to(add, imm0.mean[n:].shape)
+                imm0 = imm0._replace(cov=_add_mag_var(imm0.cov, n, add))
             var0 = _mag_var(imm0.cov, n)[:, 0] + q0
         imm_params = IMMParams(params.imm.log_transition, q_aug, params.imm.R)
         imm_state, info = imm_step(

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 
 from uimm_jax.engine.uimm_est_types import EstSettings
 
-__all__ = ["drift", "rate_gain", "rate_on", "rate_update"]
+__all__ = ["drift", "growth_walk", "rate_gain", "rate_on", "rate_update"]
 
 
 def drift(s: EstSettings, st, n: int, declared: jax.Array, rate: jax.Array):
@@ -67,5 +67,29 @@ def rate_update(s: EstSettings, rate, var_pred, var_post, correction) -> jax.Arr
     first-order Markov rate, Singer's model): it lasts only as long as the corrections
     sustain it, so a weakly observable estimate does not run on after its fault stopped.
     """
-    rate = jnp.maximum(rate + rate_gain(s, var_pred, var_post) * correction, 0.0)
+    rate = rate + rate_gain(s, var_pred, var_post) * correction
+    if not s.rate_walk:  # with ``rate_walk`` the signed average is kept (``growth_walk``)
+        rate = jnp.maximum(rate, 0.0)
     return rate * (1.0 - 1.0 / s.rate_decay) if s.rate_decay else rate
+
+
+GROWTH_Z = 3.0
+"""How many of its standard deviations the drift must exceed to widen the walk."""
+
+
+def growth_walk(s: EstSettings, rate: jax.Array, q: jax.Array) -> jax.Array:
+    """``rate_walk``: the variance a declared fault's walk gains from evidence of growth.
+
+    ``rate`` is the estimate's drift per step averaged over about ``rate_steps`` steps
+    (not kept ``>= 0``).  For a constant fault the estimate moves by about the walk's
+    standard deviation per step, so the average has standard deviation
+    ``sqrt(q_w / (2 rate_steps))`` for a walk of variance ``q_w``: only the growth beyond
+    ``GROWTH_Z`` of those counts, ``(rate_walk * max(rate - GROWTH_Z sd, 0))^2``, with
+    ``q_w`` the walk ``q`` plus that gain (one fixed-point step).  Without the threshold
+    the walk's own noise raised the average, which widened the walk further: with
+    ``rate_walk`` = 30 and a 0.2 s window, declared estimates random-walked to sd 2
+    (docs/faults.md, "Session 10: a magnitude rate").
+    """
+    n = 2.0 * max(s.rate_steps, 1)
+    extra = (s.rate_walk * jnp.maximum(rate - GROWTH_Z * jnp.sqrt(q / n), 0.0)) ** 2
+    return (s.rate_walk * jnp.maximum(rate - GROWTH_Z * jnp.sqrt((q + extra) / n), 0.0)) ** 2
