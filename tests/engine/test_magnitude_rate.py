@@ -133,3 +133,14 @@ def test_growth_walk_counts_only_drift_beyond_its_noise():
     sd = np.sqrt(float(growth_walk(s, jnp.asarray(big), q)))
     # the walk's own noise at that sd raises the threshold: 10 (big - 3 sd / sqrt(40000))
     assert sd == pytest.approx(10.0 * (big - GROWTH_Z * np.sqrt((9e-8 + 1e-4) / 40000)), rel=0.02)
+
+
+def test_with_rate_walk_the_rate_is_the_average_drift():
+    """``rate_walk``: the estimate is not moved, so the rate is the plain average of its
+    changes (signed), not their running sum."""
+    s = EstSettings(rate_steps=10, rate_walk=5.0)
+    one = jnp.ones(1)
+    rate = 0.0 * one
+    for _ in range(200):
+        rate = rate_update(s, rate, one, one, -2e-4 * one)
+    assert float(rate[0]) == pytest.approx(-2e-4, rel=1e-6)

@@ -58,6 +58,9 @@ def rate_gain(s: EstSettings, var_pred: jax.Array, var_post: jax.Array):
 def rate_update(s: EstSettings, rate, var_pred, var_post, correction) -> jax.Array:
     """The rate after a step: ``rate + gain * correction``, kept ``>= 0``, then decayed.
 
+    With ``rate_walk`` (no drift: the correction is the estimate's whole change) it is
+    the average ``rate + gain * (correction - rate)`` instead, signed and not decayed.
+
     ``correction`` is model 0's change of the magnitude by the step (estimate after it
     minus the drifted prediction).  A fault grows from nominal towards its magnitude and
     ends abruptly (the truth's ramps and ``end``; an end is the retraction hypothesis'
@@ -67,9 +70,9 @@ def rate_update(s: EstSettings, rate, var_pred, var_post, correction) -> jax.Arr
     first-order Markov rate, Singer's model): it lasts only as long as the corrections
     sustain it, so a weakly observable estimate does not run on after its fault stopped.
     """
-    rate = rate + rate_gain(s, var_pred, var_post) * correction
-    if not s.rate_walk:  # with ``rate_walk`` the signed average is kept (``growth_walk``)
-        rate = jnp.maximum(rate, 0.0)
+    if s.rate_walk:  # the signed average of the estimate's drift (``growth_walk``)
+        return rate + rate_gain(s, var_pred, var_post) * (correction - rate)
+    rate = jnp.maximum(rate + rate_gain(s, var_pred, var_post) * correction, 0.0)
     return rate * (1.0 - 1.0 / s.rate_decay) if s.rate_decay else rate
 
 
@@ -85,10 +88,8 @@ def growth_walk(s: EstSettings, rate: jax.Array, q: jax.Array) -> jax.Array:
     standard deviation per step, so the average has standard deviation
     ``sqrt(q_w / (2 rate_steps))`` for a walk of variance ``q_w``: only the growth beyond
     ``GROWTH_Z`` of those counts, ``(rate_walk * max(rate - GROWTH_Z sd, 0))^2``, with
-    ``q_w`` the walk ``q`` plus that gain (one fixed-point step).  Without the threshold
-    the walk's own noise raised the average, which widened the walk further: with
-    ``rate_walk`` = 30 and a 0.2 s window, declared estimates random-walked to sd 2
-    (docs/faults.md, "Session 10: a magnitude rate").
+    ``q_w`` the walk ``q`` plus that gain (one fixed-point step), so that the walk's own
+    noise does not widen it further (docs/faults.md, "Session 10: a magnitude rate").
     """
     n = 2.0 * max(s.rate_steps, 1)
     extra = (s.rate_walk * jnp.maximum(rate - GROWTH_Z * jnp.sqrt(q / n), 0.0)) ** 2
