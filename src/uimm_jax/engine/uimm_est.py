@@ -30,7 +30,8 @@ While a fault is declared, ``walk_settled``, ``post_gap``, ``post_floor_gap`` an
 change these rules, and ``walk_rel_newest`` and ``post_floor_mean`` (off by default;
 docs/faults.md, "Session 9") those for a second fault.  With ``rate_steps`` (off by
 default) a declared fault's magnitude also carries a rate, so that a growing fault is
-followed without lag by a small walk (docs/faults.md, "Session 10: a magnitude rate").
+followed without lag by a small walk, or (``rate_walk``) evidence of growth widens its
+walk (:mod:`uimm_jax.engine.uimm_est_rate`; docs/faults.md, "Session 10: a magnitude rate").
 An undeclared hypothesis' own magnitude is kept ``>= floor_mean`` (and its standard
 deviation ``>= floor_sd``), so that it means "a fault" and does not settle on nominal in
 fault-free data; ``floor_mean`` is below ``declare_min`` so that the bound never decides

@@ -8,7 +8,10 @@ walk.  Here the rate ``r`` of each declared fault is carried per run outside the
 covariance (the state ``[x; a]`` keeps its size): before a step every model's estimate of
 the fault moves by ``r`` (:func:`drift`), and after it ``r`` takes a share of model 0's
 correction of the estimate (:func:`rate_gain`), the alpha-beta form of that model's
-Kalman filter.  Off by default (docs/faults.md, "Session 10: a magnitude rate").
+Kalman filter.  With ``rate_walk`` the rate instead only measures the estimate's average
+drift, and evidence of growth widens the declared fault's walk (:func:`growth_walk`).
+Off by default (docs/design.md section 5 and docs/faults.md, "Session 10: a magnitude
+rate", say what each form did).
 """
 
 from __future__ import annotations
