@@ -39,7 +39,7 @@ def drift(s: EstSettings, st, n: int, declared: jax.Array, rate: jax.Array):
 
 
 def rate_on(s: EstSettings) -> bool:
-    """Whether the declared magnitudes carry a rate (``rate_steps``, ``rate_auto``)."""
+    """Whether declared magnitudes carry a rate (``rate_steps``, ``rate_auto``, ``rate_walk``)."""
     return bool(s.rate_steps or s.rate_auto or s.rate_walk)
 
 

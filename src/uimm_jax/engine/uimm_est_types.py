@@ -78,8 +78,9 @@ class EstSettings(NamedTuple):
             see ``rate_update``).
         rate_walk: with ``rate_steps``, the rate does not move the estimates; it is the
             evidence of growth (the estimate's drift averaged over about ``rate_steps``
-            steps), and a declared fault's walk gains the variance ``(rate_walk * r)^2``
-            per step (0: off; the adaptive walk of docs/faults.md, "Session 10").
+            steps), and a declared fault's walk gains the variance ``(rate_walk * e)^2``
+            per step, ``e`` the drift beyond ``GROWTH_Z`` of its standard deviations (0:
+            off; see ``growth_walk``; the adaptive walk of docs/faults.md, "Session 10").
     """
 
     walk: float = 1e-3
@@ -128,8 +129,9 @@ class EstState(NamedTuple):
             ``floor_gap``, ``post_gap``, ``post_floor_gap``, and ``settle_steps`` with
             ``walk_settled``, when it is also a declared fault's age: reset on its
             declaration).
-        rate: ``(F, *runs)`` each declared fault's magnitude rate per step (0 for the
-            others), or ``None`` without ``rate_steps``.
+        rate: ``(F, *runs)`` each declared fault's magnitude rate per step (with
+            ``rate_walk`` its average drift; 0 for the others), or ``None`` without a rate
+            (``rate_steps``, ``rate_auto`` and ``rate_walk`` all off).
     """
 
     imm: IMMState
