@@ -90,6 +90,11 @@ def test_post_floor_means_bound_each_challenger_at_its_own_floor():
         np.testing.assert_allclose(got[n + 2, 3], [air, s.floor_mean])  # air in oil (slot 3)
         np.testing.assert_allclose(got[n + 1, 2], [leak, s.floor_mean])  # leakage (slot 2)
         np.testing.assert_allclose(got[n, 1], [0.0, s.floor_mean])  # declared: untouched
+    # ``since`` must count that far (it stops at the largest gap), else the floors never hold
+    from uimm_jax.engine.uimm_est import _gap_cap
+
+    old = s._replace(walk_settled=3e-5, settle_steps=3000, low_floor_age=8000)
+    assert _gap_cap(old) == 8000 and _gap_cap(old._replace(low_floor_age=0)) == 3000
 
 
 def test_post_floor_means_needs_one_floor_per_fault():

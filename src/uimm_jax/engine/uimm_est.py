@@ -84,7 +84,7 @@ Z95 = 1.959963984540054
 
 def _gap_cap(s: EstSettings) -> int:
     """The largest restart gap of ``s`` (``since`` counts up to it)."""
-    gaps = (s.restart_gap, s.floor_gap, s.post_gap, s.post_floor_gap)
+    gaps = (s.restart_gap, s.floor_gap, s.post_gap, s.post_floor_gap, s.low_floor_age)
     return max(*gaps, s.settle_steps if s.walk_settled else 0)
 
 
