@@ -62,14 +62,16 @@ def test_post_floor_mean_bounds_a_challenger_only_while_a_fault_is_declared():
     s = diag.settings
     for post, want in ((0.0, [s.floor_mean] * 2), (0.02, [0.02, s.floor_mean])):
         d2 = dataclasses.replace(diag, settings=s._replace(post_floor_mean=post))
-        got = np.asarray(d2._floor(state, declared).mean)
+        got = np.asarray(d2._floor(state, declared, jnp.zeros((F, 2), jnp.int32)).mean)
         np.testing.assert_allclose(got[n + 2, 3], want)  # air in oil's own hypothesis (slot 3)
         np.testing.assert_allclose(got[n + 1, 2], want)  # leakage's (slot 2)
         np.testing.assert_allclose(got[n, 1], [0.0, s.floor_mean])  # declared: untouched
 
 
 def test_post_floor_means_bound_each_challenger_at_its_own_floor():
-    """``post_floor_means``: one floor per fault while a fault is declared (session 10)."""
+    """``post_floor_means``: one floor per fault while a fault is declared (session 10);
+    with ``low_floor_age``, only once the declared fault is that old (before: the shared
+    ``post_floor_mean``)."""
     import jax.numpy as jnp
 
     from uimm_jax.engine.imm import IMMState
@@ -80,10 +82,19 @@ def test_post_floor_means_bound_each_challenger_at_its_own_floor():
     state = IMMState(jnp.zeros((n + F, M, 2)), jnp.asarray(cov), jnp.zeros((M, 2)))
     declared = jnp.asarray([[True, False], [False, False], [False, False]])  # run 0: valve wear
     s = diag.settings._replace(post_floor_mean=0.02, post_floor_means=(0.01, 0.03, 0.002))
-    got = np.asarray(dataclasses.replace(diag, settings=s)._floor(state, declared).mean)
-    np.testing.assert_allclose(got[n + 2, 3], [0.002, s.floor_mean])  # air in oil (slot 3)
-    np.testing.assert_allclose(got[n + 1, 2], [0.03, s.floor_mean])  # leakage (slot 2)
-    np.testing.assert_allclose(got[n, 1], [0.0, s.floor_mean])  # declared: untouched
+    for age, low_age, own in ((0, 0, True), (99, 100, False), (100, 100, True)):
+        since = jnp.full((F, 2), age, jnp.int32)
+        d2 = dataclasses.replace(diag, settings=s._replace(low_floor_age=low_age))
+        got = np.asarray(d2._floor(state, declared, since).mean)
+        air, leak = (0.002, 0.03) if own else (0.02, 0.02)
+        np.testing.assert_allclose(got[n + 2, 3], [air, s.floor_mean])  # air in oil (slot 3)
+        np.testing.assert_allclose(got[n + 1, 2], [leak, s.floor_mean])  # leakage (slot 2)
+        np.testing.assert_allclose(got[n, 1], [0.0, s.floor_mean])  # declared: untouched
+    # ``since`` must count that far (it stops at the largest gap), else the floors never hold
+    from uimm_jax.engine.uimm_est import _gap_cap
+
+    old = s._replace(walk_settled=3e-5, settle_steps=3000, low_floor_age=8000)
+    assert _gap_cap(old) == 8000 and _gap_cap(old._replace(low_floor_age=0)) == 3000
 
 
 def test_post_floor_means_needs_one_floor_per_fault():

@@ -84,19 +84,22 @@ Z95 = 1.959963984540054
 
 def _gap_cap(s: EstSettings) -> int:
     """The largest restart gap of ``s`` (``since`` counts up to it)."""
-    gaps = (s.restart_gap, s.floor_gap, s.post_gap, s.post_floor_gap)
+    gaps = (s.restart_gap, s.floor_gap, s.post_gap, s.post_floor_gap, s.low_floor_age)
     return max(*gaps, s.settle_steps if s.walk_settled else 0)
 
 
-def _floor_mean(s: EstSettings, any_decl: jax.Array, models: bool = False):
+def _floor_mean(s: EstSettings, declared: jax.Array, since: jax.Array, models: bool = False):
     """An undeclared hypothesis' floor: ``post_floor_mean`` (if set) while a fault is declared.
 
-    With ``post_floor_means`` the floor is per fault, shaped ``(F, *runs)`` (``(F, 1,
-    *runs)`` with ``models``, against the magnitudes of every model).
+    With ``post_floor_means`` the floor is per fault, shaped ``(F, *runs)`` (``(F, 1, *runs)``
+    with ``models``), once every declared fault is ``low_floor_age`` steps old (``since``).
     """
+    any_decl = jnp.any(declared, axis=0)
     if s.post_floor_means:
         per = np.asarray(s.post_floor_means, np.float64)
         per = per.reshape((-1,) + (1,) * (any_decl.ndim + models))
+        old = jnp.all(~declared | (since >= s.low_floor_age), axis=0)  # else the shared floor
+        per = jnp.where(old, per, s.post_floor_mean or s.floor_mean)
         return jnp.where(any_decl, per, s.floor_mean)
     if s.post_floor_mean <= 0:
         return s.floor_mean
@@ -278,7 +281,7 @@ class UIMMEstDiagnoser(Diagnoser):
         floor_gap = s.floor_gap
         if s.post_floor_gap > 0:
             floor_gap = jnp.where(any_decl, s.post_floor_gap, s.floor_gap)
-        held = (own_mean <= _floor_mean(s, any_decl)) & (since >= floor_gap)  # at its floor
+        held = (own_mean <= _floor_mean(s, declared, since)) & (since >= floor_gap)  # at floor
         if s.race_floor > 0:  # nor at the floor, in a race (docs/faults.md, "Ramps")
             race = jnp.any(lead_f & (own_mean < s.race_floor), axis=0)
             held = held & ~(race & ~any_decl if s.race_floor_first else race)
@@ -298,7 +301,7 @@ class UIMMEstDiagnoser(Diagnoser):
         cov = jnp.where(keep, st.cov, target)
         return IMMState(mean, cov, st.log_mode_probs), since.astype(jnp.int32)
 
-    def _floor(self, st: IMMState, declared: jax.Array) -> IMMState:
+    def _floor(self, st: IMMState, declared: jax.Array, since: jax.Array) -> IMMState:
         """An undeclared hypothesis' own magnitude: mean ``>= floor_mean``, sd ``>= floor_sd``.
 
         The hypothesis is "fault j is present": without the bound it would settle on
@@ -310,7 +313,7 @@ class UIMMEstDiagnoser(Diagnoser):
         """
         n, F, s = self.dyn.n, self.num_faults, self.settings
         hyp = (~declared)[:, None] & _own_slots(F, declared.ndim - 1)  # (F, M, *runs)
-        floor = _floor_mean(s, jnp.any(declared, axis=0), models=True)
+        floor = _floor_mean(s, declared, since, models=True)
         mean = st.mean.at[n:].set(jnp.where(hyp, jnp.maximum(st.mean[n:], floor), st.mean[n:]))
         var = _mag_var(st.cov, n)
         add = jnp.where(hyp, jnp.maximum(s.floor_sd**2 - var, 0.0), 0.0)
@@ -387,7 +390,7 @@ class UIMMEstDiagnoser(Diagnoser):
         imm_state, info = imm_step(
             self.aug, imm0, state.cache, imm_params, u, y, gate=self.gate, with_cov=with_cov
         )
-        imm_state = self._floor(imm_state, declared)
+        imm_state = self._floor(imm_state, declared, since)
         mags = imm_state.mean[n:]  # (F, M, *runs)
         var = _mag_var(imm_state.cov, n)
         slot = _slot_of(declared)

@@ -99,6 +99,10 @@ class EstSettings(NamedTuple):
             so that a fault settles only once it has stopped growing; a move towards
             nominal only moves the anchor (0: off, the age counts from the declaration;
             docs/faults.md, "Session 10").
+        low_floor_age: with ``post_floor_means`` and ``walk_settled``, the per-fault
+            floors hold only while every declared fault is at least this many steps old
+            (its ``since``); before, ``post_floor_mean`` (0: off, always the per-fault
+            floors; docs/faults.md, "Session 10, last").
     """
 
     walk: float = 1e-3
@@ -129,6 +133,7 @@ class EstSettings(NamedTuple):
     tangent_order: int = 6
     post_floor_means: tuple[float, ...] = ()
     settle_move: float = 0.0
+    low_floor_age: int = 0
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -160,6 +165,7 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "tangent_order": (0, False, "a Taylor degree; 0: the cache's own degree"),
     "post_floor_means": (0.0, False, "magnitudes, one per fault; empty: off"),
     "settle_move": (0.0, False, "standard deviations; 0: off"),
+    "low_floor_age": (0, False, "steps; 0: off"),
 }
 _HIGH = {"restart_below": 1.0, "tangent_order": 12}
 
