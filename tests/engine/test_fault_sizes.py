@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from _robustness_helpers import short_dict, with_est_settings
+from uimm_jax.engine import _est_rules as rules
 from uimm_jax.engine.bank import fault_table, param_at_magnitude
 from uimm_jax.engine.truth import RAMP_STAIRS, fault_breakpoints, plan_phases
 from uimm_jax.scenario.parse import parse_scenario
@@ -348,7 +349,7 @@ def test_race_below_keeps_a_losing_lookalike_filtering(lead_mean, kept):
     assert s.race_below == s.declare_min
     state = _race_state(diag, 2, lead_mean)
     for d2, want in ((diag, kept), (_diag_with(diag, race_below=0.0), False)):
-        imm, _ = d2._reset_unused(*state)
+        imm, _ = rules.reset_unused(d2.settings, d2.dyn.n, *state)
         own = np.asarray(imm.mean[3, 1])  # valve wear's own magnitude, per run
         var = np.asarray(imm.cov[3, 3, 1])
         np.testing.assert_allclose(own[0], 0.3 if want else s.prior_mean)
@@ -374,7 +375,7 @@ def test_race_floor_keeps_a_lookalike_at_its_floor_filtering(lead_mean, kept):
     every = _diag_with(diag, race_floor_first=False)
     off = _diag_with(diag, race_floor=0.0)
     for d2, want in ((every, kept), (diag, kept), (off, False)):
-        imm, _ = d2._reset_unused(*state)
+        imm, _ = rules.reset_unused(d2.settings, d2.dyn.n, *state)
         own = np.asarray(imm.mean[3, 1])  # valve wear's own magnitude, per run
         var = np.asarray(imm.cov[3, 3, 1])
         np.testing.assert_allclose(own[0], s.floor_mean if want else s.prior_mean)
@@ -401,7 +402,7 @@ def test_walk_rel_single_grows_a_lone_declared_faults_walk_only():
     for single in (True, False):
         d2 = _diag_with(diag, walk_rel_single=single)
         since = jnp.ones(declared.shape, jnp.int32)
-        got = np.asarray(d2._walk_rel(state, declared, since).cov) - cov
+        got = np.asarray(rules.walk_rel(d2.settings, d2.dyn.n, state, declared, since).cov) - cov
         want = np.zeros_like(cov)
         for j, r in [(0, 0)] + ([] if single else [(0, 1), (1, 1)]):
             want[n + j, n + j, :, r] = extra  # every model's copy
@@ -502,7 +503,7 @@ def test_gathered_cache_rebuild_equals_the_whole_batch_rebuild():
     import jax
     import jax.numpy as jnp
 
-    import uimm_jax.engine.uimm_est as ue
+    import uimm_jax.engine._est_rebuild as ue
 
     diag = _est_setup().diagnoser
     F, M, runs = 3, 4, (5, 8)  # two run axes, 40 runs
@@ -510,12 +511,12 @@ def test_gathered_cache_rebuild_equals_the_whole_batch_rebuild():
     declared = jnp.asarray(rng.random((F,) + runs) < 0.4)
     a0 = jnp.asarray(rng.uniform(0.2, 3.0, (F, M) + runs))
     old = diag._cache(jnp.zeros((F,) + runs, bool), jnp.ones((F, M) + runs))
-    whole = jax.jit(lambda need, d, a: jax.tree.map(ue._per_run(need), diag._cache(d, a), old))
+    whole = jax.jit(lambda need, d, a: jax.tree.map(ue.per_run(need), diag._cache(d, a), old))
     for count, group in ((3, 8), (8, 8), (12, 32), (32, 32)):
         need = np.zeros(40, bool)
         need[rng.choice(40, count, replace=False)] = True
         need = jnp.asarray(need.reshape(runs))
-        got = jax.jit(lambda need, d, a, g=group: ue._gathered(diag._cache, need, (d, a), old, g))
+        got = jax.jit(lambda need, d, a, g=group: ue.gathered(diag._cache, need, (d, a), old, g))
         for a, b in zip(
             jax.tree.leaves(got(need, declared, a0)),
             jax.tree.leaves(whole(need, declared, a0)),
@@ -536,7 +537,7 @@ def test_uimm_est_batch_steps_are_the_same_with_and_without_gathering(monkeypatc
     import jax
     import jax.numpy as jnp
 
-    import uimm_jax.engine.uimm_est as ue
+    import uimm_jax.engine._est_rebuild as ue
     from uimm_jax.studies.run import simulate_scenario
 
     st = _est_setup(duration=0.05, events=(0.01, 0.03), mag=0.5)

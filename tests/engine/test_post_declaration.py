@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from _robustness_helpers import short_dict, with_est_settings
+from uimm_jax.engine import _est_rules as rules
 from uimm_jax.scenario.parse import parse_scenario
 
 
@@ -45,7 +46,9 @@ def test_floor_restart_is_spaced_by_post_floor_gap_only_after_a_declaration():
 
     def own_after(settings, declared):
         d = dataclasses.replace(diag, settings=settings)
-        out, new_since = d._reset_unused(imm, s0.cache.use, jnp.asarray(declared), since)
+        out, new_since = rules.reset_unused(
+            d.settings, d.dyn.n, imm, s0.cache.use, jnp.asarray(declared), since
+        )
         return float(out.mean[n + 1, 2]), int(new_since[1])
 
     prior = diag.settings.prior_mean

@@ -7,6 +7,7 @@ import dataclasses
 import numpy as np
 
 from _robustness_helpers import short_dict
+from uimm_jax.engine import _est_rules as rules
 from uimm_jax.scenario.parse import parse_scenario
 
 
@@ -41,7 +42,7 @@ def test_walk_rel_newest_grows_the_walk_of_the_fault_declared_last_while_young()
     assert base.walk_rel_single and extra > 0
     for newest, grown in ((False, [(2, 2)]), (True, [(2, 0), (2, 2)])):
         d2 = dataclasses.replace(diag, settings=base._replace(walk_rel_newest=newest))
-        got = np.asarray(d2._walk_rel(state, declared, since).cov) - cov
+        got = np.asarray(rules.walk_rel(d2.settings, d2.dyn.n, state, declared, since).cov) - cov
         want = np.zeros_like(cov)
         for j, r in grown:
             want[n + j, n + j, :, r] = extra  # every model's copy
@@ -62,7 +63,9 @@ def test_post_floor_mean_bounds_a_challenger_only_while_a_fault_is_declared():
     s = diag.settings
     for post, want in ((0.0, [s.floor_mean] * 2), (0.02, [0.02, s.floor_mean])):
         d2 = dataclasses.replace(diag, settings=s._replace(post_floor_mean=post))
-        got = np.asarray(d2._floor(state, declared, jnp.zeros((F, 2), jnp.int32)).mean)
+        got = np.asarray(
+            rules.floor(d2.settings, d2.dyn.n, state, declared, jnp.zeros((F, 2), jnp.int32)).mean
+        )
         np.testing.assert_allclose(got[n + 2, 3], want)  # air in oil's own hypothesis (slot 3)
         np.testing.assert_allclose(got[n + 1, 2], want)  # leakage's (slot 2)
         np.testing.assert_allclose(got[n, 1], [0.0, s.floor_mean])  # declared: untouched
@@ -85,16 +88,16 @@ def test_post_floor_means_bound_each_challenger_at_its_own_floor():
     for age, low_age, own in ((0, 0, True), (99, 100, False), (100, 100, True)):
         since = jnp.full((F, 2), age, jnp.int32)
         d2 = dataclasses.replace(diag, settings=s._replace(low_floor_age=low_age))
-        got = np.asarray(d2._floor(state, declared, since).mean)
+        got = np.asarray(rules.floor(d2.settings, d2.dyn.n, state, declared, since).mean)
         air, leak = (0.002, 0.03) if own else (0.02, 0.02)
         np.testing.assert_allclose(got[n + 2, 3], [air, s.floor_mean])  # air in oil (slot 3)
         np.testing.assert_allclose(got[n + 1, 2], [leak, s.floor_mean])  # leakage (slot 2)
         np.testing.assert_allclose(got[n, 1], [0.0, s.floor_mean])  # declared: untouched
     # ``since`` must count that far (it stops at the largest gap), else the floors never hold
-    from uimm_jax.engine.uimm_est import _gap_cap
+    from uimm_jax.engine._est_rules import gap_cap
 
     old = s._replace(walk_settled=3e-5, settle_steps=3000, low_floor_age=8000)
-    assert _gap_cap(old) == 8000 and _gap_cap(old._replace(low_floor_age=0)) == 3000
+    assert gap_cap(old) == 8000 and gap_cap(old._replace(low_floor_age=0)) == 3000
 
 
 def test_post_floor_means_needs_one_floor_per_fault():
@@ -114,7 +117,8 @@ def test_settle_move_restarts_a_fault_s_age_only_when_its_estimate_grows():
     the age and re-anchors; a move towards nominal only re-anchors; a small move neither."""
     import jax.numpy as jnp
 
-    from uimm_jax.engine.uimm_est import EstSettings, _moved
+    from uimm_jax.engine._est_rules import moved
+    from uimm_jax.engine.uimm_est import EstSettings
 
     s = EstSettings(walk_settled=3e-5, settle_steps=100, settle_move=5.0)
     # runs: grew (0.5 -> 0.6, sd 0.01), shrank (0.5 -> 0.4), small move, not declared
@@ -123,6 +127,6 @@ def test_settle_move_restarts_a_fault_s_age_only_when_its_estimate_grows():
     est = jnp.asarray([[0.6, 0.4, 0.54, 0.9]])
     sd = jnp.full((1, 4), 0.01)
     since = jnp.asarray([[150, 150, 150, 150]], jnp.int32)
-    new_since, new_anchor = _moved(s, declared, est, sd, since, anchor)
+    new_since, new_anchor = moved(s, declared, est, sd, since, anchor)
     np.testing.assert_array_equal(new_since, [[0, 150, 150, 150]])
     np.testing.assert_allclose(new_anchor, [[0.6, 0.4, 0.5, 0.5]])

@@ -68,6 +68,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from uimm_jax.engine import _est_rebuild as gather
+from uimm_jax.engine import _est_rules as rules
 from uimm_jax.engine.augmented import AugCache, AugmentedDynamics
 from uimm_jax.engine.bank import set_codes
 from uimm_jax.engine.decision import decide
@@ -80,76 +82,6 @@ __all__ = ["EstInfo", "EstSettings", "EstState", "UIMMEstDiagnoser", "build_diag
 
 Z95 = 1.959963984540054
 """The two-sided 95 % normal quantile (magnitude intervals)."""
-
-
-def _gap_cap(s: EstSettings) -> int:
-    """The largest restart gap of ``s`` (``since`` counts up to it)."""
-    gaps = (s.restart_gap, s.floor_gap, s.post_gap, s.post_floor_gap, s.low_floor_age)
-    return max(*gaps, s.settle_steps if s.walk_settled else 0)
-
-
-def _floor_mean(s: EstSettings, declared: jax.Array, since: jax.Array, models: bool = False):
-    """An undeclared hypothesis' floor: ``post_floor_mean`` (if set) while a fault is declared.
-
-    With ``post_floor_means`` the floor is per fault, shaped ``(F, *runs)`` (``(F, 1, *runs)``
-    with ``models``), once every declared fault is ``low_floor_age`` steps old (``since``).
-    """
-    any_decl = jnp.any(declared, axis=0)
-    if s.post_floor_means:
-        per = np.asarray(s.post_floor_means, np.float64)
-        per = per.reshape((-1,) + (1,) * (any_decl.ndim + models))
-        old = jnp.all(~declared | (since >= s.low_floor_age), axis=0)  # else the shared floor
-        per = jnp.where(old, per, s.post_floor_mean or s.floor_mean)
-        return jnp.where(any_decl, per, s.floor_mean)
-    if s.post_floor_mean <= 0:
-        return s.floor_mean
-    return jnp.where(any_decl, s.post_floor_mean, s.floor_mean)
-
-
-def _newest(declared: jax.Array, since: jax.Array) -> jax.Array:
-    """``(F, *runs)``: the declared fault(s) of the smallest age ``since`` (``walk_settled``)."""
-    age = jnp.where(declared, since, jnp.iinfo(jnp.int32).max)
-    return declared & (age == jnp.min(age, axis=0))
-
-
-def _moved(s: EstSettings, declared, est, est_sd, since, anchor):
-    """``settle_move``: a declared fault's age restarts when its estimate grows.
-
-    A move of more than ``settle_move`` standard deviations from ``anchor`` re-anchors the
-    estimate; a move away from nominal (the fault grew) also restarts its age ``since``,
-    so that ``walk_settled`` acts only once the fault has stopped growing.  A move
-    towards nominal does not: a settled estimate pulled down by a new fault that cancels
-    it (valve wear and air in oil in the input gain) must stay settled (docs/faults.md,
-    "Session 10").  Returns the new ``since`` and ``anchor``.
-    """
-    far = declared & (jnp.abs(est - anchor) > s.settle_move * est_sd)
-    grew = far & (jnp.abs(est) > jnp.abs(anchor))
-    return jnp.where(grew, 0, since), jnp.where(far, est, anchor)
-
-
-def _own_slots(F: int, nd: int) -> np.ndarray:
-    """``(F, F + 1, 1 x nd)`` bool: slot ``j + 1`` is fault ``j``'s own hypothesis."""
-    own = np.concatenate([np.zeros((F, 1), bool), np.eye(F, dtype=bool)], axis=1)
-    return own.reshape((F, F + 1) + (1,) * nd)
-
-
-def _mag_var(cov: jax.Array, n: int) -> jax.Array:
-    """``(F, M, *runs)``: every model's variance of every magnitude (``cov`` over ``[x; a]``)."""
-    return jnp.moveaxis(jnp.diagonal(cov[n:, n:], axis1=0, axis2=1), -1, 0)
-
-
-def _add_mag_var(cov: jax.Array, n: int, add: jax.Array) -> jax.Array:
-    """``cov`` with ``add`` ``(F, M, *runs)`` added to the magnitudes' variances (PSD if >= 0)."""
-    F = add.shape[0]
-    eye = np.eye(F).reshape((F, F) + (1,) * (add.ndim - 1))
-    return cov.at[n:, n:].add(eye * add[None])
-
-
-def _slot_of(declared: jax.Array) -> jax.Array:
-    """``(F, *runs)`` model holding each fault's magnitude estimate (0 if declared)."""
-    F = declared.shape[0]
-    own = np.arange(1, F + 1).reshape((F,) + (1,) * (declared.ndim - 1))
-    return jnp.where(declared, 0, own)
 
 
 @final
@@ -172,7 +104,7 @@ class UIMMEstDiagnoser(Diagnoser):
 
     def model_sets(self, declared: jax.Array) -> jax.Array:
         """``(F, F + 1, *runs)``: ``[D, D xor f_1, ..., D xor f_F]``."""
-        return declared[:, None] ^ _own_slots(declared.shape[0], declared.ndim - 1)
+        return declared[:, None] ^ rules.own_slots(declared.shape[0], declared.ndim - 1)
 
     def model_labels(self) -> list[str]:
         """Slots are relative to the declared set ``D``."""
@@ -222,145 +154,9 @@ class UIMMEstDiagnoser(Diagnoser):
             base.run_model,
             base.run_len,
             jnp.zeros((F,) + tuple(runs), jnp.int32),
-            jnp.full((F,) + tuple(runs), _gap_cap(s), jnp.int32),
+            jnp.full((F,) + tuple(runs), rules.gap_cap(s), jnp.int32),
             jnp.zeros((F,) + tuple(runs), dtype),
         )
-
-    def _reset_unused(self, st: IMMState, use: jax.Array, declared: jax.Array, since):
-        """Magnitudes a model does not use: to the bank's belief about them, uncorrelated.
-
-        For a declared fault that is model 0's current estimate (so that mixing with the
-        retraction hypothesis "D - f_j" leaves the estimate of ``a_j`` alone).  For an
-        undeclared fault it is its hypothesis' own estimate while that hypothesis has
-        probability ``>= settings.restart_below``, and the prior of a new fault otherwise;
-        a hypothesis below that probability restarts from the prior itself.  Mixing
-        (eqs. 15-17) then never blends a hypothesis' estimate with the prior while it
-        competes: a blend whose weight grows as the hypothesis loses probability widens
-        the loser's estimate and lowers its likelihood further, which made one of two
-        hypotheses that explain the data almost equally well (valve wear and leakage)
-        win by that feedback alone.
-
-        ``since`` ``(F, *runs)`` counts the steps since each hypothesis last restarted.  A
-        hypothesis of low probability restarts only once every ``restart_gap`` steps
-        (with ``gap_first_only``: only while nothing is declared), and evolves on its own
-        estimate in between, so that it can gather the evidence to come back: restarting
-        at every step (``restart_gap = 1``) lets a one-step likelihood decide, which never
-        pays for the prior's width (docs/faults.md, "Ramps").
-
-        Nor does it restart while the most probable model is an undeclared hypothesis
-        whose estimate is below ``race_below`` (a race of faults too small to declare):
-        early in a ramp two look-alikes (valve wear, leakage) race where only noise
-        tells them apart, and the one behind keeps gathering the evidence (``Kq``) that
-        grows with the fault.  An abrupt fault's leader starts from the prior, above the
-        bound.  With ``race_floor`` (and, with ``race_floor_first``, the defaults, only
-        while nothing is declared), while the leader's estimate is below that bound a
-        hypothesis held at its floor does not restart either: over a slow ramp the true
-        fault sits for seconds near the floor, and a hypothesis that restarts from the
-        prior whenever its estimate touches the floor never gathers the evidence to beat
-        a look-alike whose estimate has grown 2-4x the truth (docs/faults.md, "Ramps").
-        Returns the state and the new ``since``.
-        """
-        n, F, s = self.dyn.n, self.num_faults, self.settings
-        var_all = _mag_var(st.cov, n)
-        own = _own_slots(F, use.ndim - 2)
-        own_mean = jnp.sum(jnp.where(own, st.mean[n:], 0.0), axis=1)  # (F, *runs)
-        own_var = jnp.sum(jnp.where(own, var_all, 0.0), axis=1)
-        any_decl = jnp.any(declared, axis=0)
-        due = since >= s.restart_gap
-        if s.post_gap > 0:
-            due = jnp.where(any_decl, since >= s.post_gap, due)
-        elif s.gap_first_only:
-            due = due | any_decl
-        lead = jnp.argmax(st.log_mode_probs, axis=0)  # (*runs,)
-        hyp = np.arange(1, F + 1).reshape((F,) + (1,) * (use.ndim - 2))
-        lead_f = (lead == hyp) & ~declared  # (F, *runs)
-        if s.race_below > 0:  # a race of faults too small to declare: no restart
-            small = jnp.any(lead_f & (own_mean < s.race_below), axis=0)
-            due = due & ~small
-        low = (st.log_mode_probs[1:] < np.log(s.restart_below)) & due
-        floor_gap = s.floor_gap
-        if s.post_floor_gap > 0:
-            floor_gap = jnp.where(any_decl, s.post_floor_gap, s.floor_gap)
-        held = (own_mean <= _floor_mean(s, declared, since)) & (since >= floor_gap)  # at floor
-        if s.race_floor > 0:  # nor at the floor, in a race (docs/faults.md, "Ramps")
-            race = jnp.any(lead_f & (own_mean < s.race_floor), axis=0)
-            held = held & ~(race & ~any_decl if s.race_floor_first else race)
-        live = ~low & ~held  # (F, *runs)
-        restart = ~declared & ~live
-        since = jnp.where(restart, 1, jnp.minimum(since + 1, _gap_cap(s)))
-        use = use & ~(own & restart[:, None])
-        tm = jnp.where(declared, st.mean[n:, 0], jnp.where(live, own_mean, s.prior_mean))
-        tv = jnp.where(declared, var_all[:, 0], jnp.where(live, own_var, s.prior_sd**2))
-        tm, tv = tm[:, None], tv[:, None]  # (F, 1, *runs)
-        free = jnp.concatenate([jnp.ones((n,) + use.shape[1:], bool), use], axis=0)
-        mean = jnp.concatenate([st.mean[:n], jnp.where(use, st.mean[n:], tm)], 0)
-        keep = free[:, None] & free[None]
-        eye = np.eye(n + F, dtype=bool)[n:].reshape((F, n + F) + (1,) * (use.ndim - 1))
-        diag_t = jnp.where(eye, tv[:, None], 0.0)  # (F, n+F, 1, *runs): target variances
-        target = jnp.concatenate([jnp.zeros((n, n + F) + diag_t.shape[2:], st.cov.dtype), diag_t])
-        cov = jnp.where(keep, st.cov, target)
-        return IMMState(mean, cov, st.log_mode_probs), since.astype(jnp.int32)
-
-    def _floor(self, st: IMMState, declared: jax.Array, since: jax.Array) -> IMMState:
-        """An undeclared hypothesis' own magnitude: mean ``>= floor_mean``, sd ``>= floor_sd``.
-
-        The hypothesis is "fault j is present": without the bound it would settle on
-        nominal in fault-free data (a copy of model 0 that keeps a share of the
-        probability) and be slow to follow a fault that appears.
-        While a fault is declared the bound is ``post_floor_mean`` if set: a challenger
-        then follows a second fault from a smaller size (docs/faults.md, "Session 9").
-        Raising a variance adds a PSD matrix (the covariance stays PSD).
-        """
-        n, F, s = self.dyn.n, self.num_faults, self.settings
-        hyp = (~declared)[:, None] & _own_slots(F, declared.ndim - 1)  # (F, M, *runs)
-        floor = _floor_mean(s, declared, since, models=True)
-        mean = st.mean.at[n:].set(jnp.where(hyp, jnp.maximum(st.mean[n:], floor), st.mean[n:]))
-        var = _mag_var(st.cov, n)
-        add = jnp.where(hyp, jnp.maximum(s.floor_sd**2 - var, 0.0), 0.0)
-        return st._replace(mean=mean, cov=_add_mag_var(st.cov, n, add))
-
-    def _walk_rel(self, st: IMMState, declared: jax.Array, since: jax.Array) -> IMMState:
-        """A declared fault's random walk: standard deviation ``max(walk, walk_rel |a|)``.
-
-        ``a`` is model 0's estimate.  The variance beyond ``walk^2`` (in ``Q``) is added to
-        every model's variance of ``a`` before the step (``Q`` stays one matrix).  With
-        ``walk_rel_single`` only while no other fault is declared: a second fault can make
-        the first weakly observable (valve wear under air in oil), and a faster walk then
-        only adds error (docs/faults.md, "Ramps").  With ``walk_rel_newest`` (and
-        ``walk_settled``, whose ``since`` is a declared fault's age) it also acts on the
-        fault declared last while it is younger than ``settle_steps``: a second fault that
-        still grows is followed as the first was (docs/faults.md, "Session 9: the second
-        fault while it grows").  Adds a PSD matrix.
-        """
-        n, s = self.dyn.n, self.settings
-        sd = jnp.maximum(s.walk, s.walk_rel * jnp.abs(st.mean[n:, 0]))  # (F, *runs)
-        grow = declared & (jnp.sum(declared, axis=0) == 1) if s.walk_rel_single else declared
-        if s.walk_settled and s.walk_rel_newest:  # also the fault declared last (``since``)
-            grow = grow | _newest(declared, since)
-        if s.walk_settled:  # a settled fault walks at ``walk_settled`` instead (``step``)
-            grow = grow & (since < s.settle_steps)
-        extra = jnp.where(grow, sd**2 - s.walk**2, 0.0)[:, None]  # (F, 1, *runs)
-        return st._replace(cov=_add_mag_var(st.cov, n, jnp.broadcast_to(extra, st.mean[n:].shape)))
-
-    def _reopen(self, st: IMMState, new: jax.Array) -> IMMState:
-        """A newly declared fault's magnitude: sd ``>= reopen_rel`` times its mean, every model.
-
-        The variance a hypothesis hands over was accumulated during the race, at
-        linearisation points on the way to the fault's size.  On ``Eh``'s log scale the
-        pressure equation's sensitivity to ``a`` falls by 10 per unit of ``a``, so a sample
-        taken at ``a_hat`` counts ``10^(2 (a - a_hat))`` times too much information (10x for
-        2 declared at 1.5, 300x for 3 at 1.75): the estimate was declared at 1.5-1.8 with
-        sd 0.02-0.03, then crept towards the truth for hundreds of ms, and the bank
-        explained the rest by retracting valve wear or declaring leakage (docs/faults.md,
-        "Sizes").  Raising the variance adds a
-        PSD matrix (the covariance stays PSD) and leaves the means (and the cache) alone.
-        """
-        n, s = self.dyn.n, self.settings
-        if s.reopen_rel <= 0:
-            return st
-        target = (s.reopen_rel * st.mean[n:]) ** 2
-        add = jnp.where(new[:, None], jnp.maximum(target - _mag_var(st.cov, n), 0.0), 0.0)
-        return st._replace(cov=_add_mag_var(st.cov, n, add))
 
     def step(
         self,
@@ -375,9 +171,9 @@ class UIMMEstDiagnoser(Diagnoser):
         n, F, s = self.dyn.n, self.num_faults, self.settings
         declared = state.declared
         dtype = state.imm.mean.dtype
-        imm0, since = self._reset_unused(state.imm, state.cache.use, declared, state.since)
+        imm0, since = rules.reset_unused(s, n, state.imm, state.cache.use, declared, state.since)
         if s.walk_rel:  # a declared fault's walk grows with its size
-            imm0 = self._walk_rel(imm0, declared, since)
+            imm0 = rules.walk_rel(s, n, imm0, declared, since)
         q_aug = jnp.zeros((n + F, n + F), dtype).at[:n, :n].set(params.imm.Q)
         q_aug = q_aug.at[n:, n:].set(jnp.eye(F, dtype=dtype) * s.walk**2)
         if s.walk_settled:  # a fault declared settle_steps ago walks slower: Q per run
@@ -390,10 +186,10 @@ class UIMMEstDiagnoser(Diagnoser):
         imm_state, info = imm_step(
             self.aug, imm0, state.cache, imm_params, u, y, gate=self.gate, with_cov=with_cov
         )
-        imm_state = self._floor(imm_state, declared, since)
+        imm_state = rules.floor(s, n, imm_state, declared, since)
         mags = imm_state.mean[n:]  # (F, M, *runs)
-        var = _mag_var(imm_state.cov, n)
-        slot = _slot_of(declared)
+        var = rules.mag_var(imm_state.cov, n)
+        slot = rules.slot_of(declared)
         pick = slot[:, None] == np.arange(self.num_models).reshape((1, -1) + (1,) * (slot.ndim - 1))
         est = jnp.sum(jnp.where(pick, mags, 0.0), axis=1)  # (F, *runs)
         est_sd = jnp.sqrt(jnp.maximum(jnp.sum(jnp.where(pick, var, 0.0), axis=1), 0.0))
@@ -430,14 +226,14 @@ class UIMMEstDiagnoser(Diagnoser):
         changed = dec.declared_now | any_ret
         new_declared = jnp.where(retract, False, dec.declared)
         imm_state, cache = self._handover(imm_state, state.cache, winner, changed, new_declared)
-        imm_state = self._reopen(imm_state, new_declared & ~declared)
+        imm_state = rules.reopen(s, n, imm_state, new_declared & ~declared)
         anchor = state.anchor
         if s.walk_settled and s.settle_move > 0:  # a fault still growing is not settled
-            since, anchor = _moved(s, declared, est, est_sd, since, anchor)
+            since, anchor = rules.moved(s, declared, est, est_sd, since, anchor)
             anchor = jnp.where(new_declared & ~declared, est, anchor)
         if s.walk_settled:  # since: a declared fault's age; a retracted one is due again
             since = jnp.where(new_declared & ~declared, 0, since)
-            since = jnp.where(retract, _gap_cap(s), since).astype(jnp.int32)
+            since = jnp.where(retract, rules.gap_cap(s), since).astype(jnp.int32)
         new_state = EstState(
             imm_state,
             cache,
@@ -493,12 +289,12 @@ class UIMMEstDiagnoser(Diagnoser):
             lm = jnp.where(changed, swapped, lm)
             args = (new_declared, mean[n:])
             if group:
-                fresh = _gathered(self._cache, need, args, c, group)
+                fresh = gather.gathered(self._cache, need, args, c, group)
             else:
-                fresh = jax.tree.map(_per_run(need), self._cache(*args), c)
+                fresh = jax.tree.map(gather.per_run(need), self._cache(*args), c)
             return IMMState(mean, cov, lm), fresh
 
-        groups = [g for g in REBUILD_GROUPS if g < need.size]
+        groups = [g for g in gather.REBUILD_GROUPS if g < need.size]
         if not groups:
             return jax.lax.cond(jnp.any(need), rebuild, lambda o: o, (st, cache))
         # the smallest group that holds the runs in need, else the whole batch
@@ -506,49 +302,6 @@ class UIMMEstDiagnoser(Diagnoser):
         branch = jnp.where(count == 0, 0, 1 + sum((count > g).astype(jnp.int32) for g in groups))
         branches = [lambda o: o] + [functools.partial(rebuild, group=g) for g in groups]
         return jax.lax.switch(branch, branches + [rebuild], (st, cache))
-
-
-REBUILD_GROUPS = (8, 32)
-"""Sizes of the gathered rebuilds (:func:`_gathered`; docs/faults.md, "Cost")."""
-
-
-def _gathered(fn, need: jax.Array, args: tuple, old, group: int):
-    """``fn(*args)`` on the (at most ``group``) runs where ``need``, ``old`` on the others.
-
-    ``need`` is ``(*runs,)``; every leaf of ``args`` and of ``old`` (the result's pytree)
-    ends with the run axes, and ``fn`` works run by run.  The runs in need are gathered
-    into a batch of ``group`` and each pulls its own result back (selects only): a run's
-    result is the one ``fn`` gives on the whole batch, bit for bit.
-    """
-    r = need.ndim
-    R = need.size
-    flat = lambda x: x.reshape(x.shape[: x.ndim - r] + (R,))
-    need_f = need.reshape(R)
-    # A run's slot: how many runs before it need one (a triangular count, not cumsum or
-    # nonzero, which cost more than the rebuild inside the compiled step; measured).
-    if R <= 1024:
-        before = np.tril(np.ones((R, R), bool), -1)  # [r, q]: q < r
-        pos = jnp.sum(before & need_f[None], axis=1)  # (R,)
-    else:  # the same numbers without an R x R mask
-        pos = jnp.cumsum(need_f.astype(jnp.int32)) - need_f
-    slot = need_f[None] & (pos[None] == np.arange(group)[:, None])  # (group, R)
-    idx = jnp.argmax(slot, axis=1)  # the run in each slot (0 for an empty slot: unused)
-    fresh = fn(*jax.tree.map(lambda x: jnp.take(flat(x), idx, axis=-1), args))
-    pos = jnp.minimum(pos, group - 1)
-    pull = lambda o, f: jnp.where(need_f, jnp.take(f, pos, axis=-1), flat(o)).reshape(o.shape)
-    return jax.tree.map(pull, old, fresh)
-
-
-def _per_run(need: jax.Array):
-    """``(fresh, old) -> fresh`` on the runs where ``need``, else ``old`` (runs trailing)."""
-
-    def pick(fresh, old):
-        r = need.ndim
-        if r and fresh.ndim >= r and fresh.shape[fresh.ndim - r :] == need.shape:
-            return jnp.where(need, fresh, old)
-        return fresh  # a leaf without the run axes does not depend on the run
-
-    return pick
 
 
 @functools.partial(jax.jit, static_argnums=(0, 2))

@@ -47,7 +47,7 @@ class EstSettings(NamedTuple):
         retract_below: a declared fault whose estimate stays below this is retracted.
         relin: re-centre the expansion when an estimate moves this far from it.
         restart_below: an undeclared hypothesis of lower probability restarts its
-            magnitude from the prior (see ``_reset_unused``).
+            magnitude from the prior (see ``_est_rules.reset_unused``).
         reopen_rel: on its declaration, a fault's magnitude standard deviation is raised
             to at least this fraction of its estimate, in every model (see ``_reopen``;
             0 turns it off).
@@ -62,7 +62,7 @@ class EstSettings(NamedTuple):
         race_below: while the most probable model is an undeclared hypothesis whose
             estimate is below this (a race of faults too small to declare), a hypothesis
             of low probability does not restart from the prior but keeps filtering on its
-            own estimate (see ``_reset_unused``; 0 turns it off).
+            own estimate (see ``_est_rules.reset_unused``; 0 turns it off).
         walk_rel_single: ``walk_rel`` applies only while the fault is the only declared
             one.
         post_gap: steps between two restarts for low probability while a fault is
@@ -82,7 +82,7 @@ class EstSettings(NamedTuple):
         race_floor: while the most probable model is an undeclared hypothesis whose
             estimate is below this, a hypothesis held at its floor does not restart from
             the prior either, but keeps filtering at the floor (0: off; see
-            ``_reset_unused``; default 0.3 since session 9, docs/faults.md).
+            ``_est_rules.reset_unused``; default 0.3 since session 9, docs/faults.md).
         race_floor_first: ``race_floor`` holds only while no fault is declared (default).
         tangent_order: Taylor degree of the zero-order hold through which the cache's
             derivatives in the magnitudes are taken (0: the hold's own, 12); a cheaper
@@ -208,9 +208,7 @@ def est_setting_problem(name: str, value: Any) -> str | None:
     low, low_open, what = _RULES[name]
     if kind is tuple:  # one number per fault (the length is checked by build_diagnoser)
         items = list(value) if isinstance(value, list | tuple) else None
-        if items is None or not all(
-            is_number(v) and math.isfinite(v) and v >= low for v in items
-        ):
+        if items is None or not all(is_number(v) and math.isfinite(v) and v >= low for v in items):
             return f"a list of finite numbers >= {low:g} ({what}), got {value!r}"
         return None
     if kind is int:

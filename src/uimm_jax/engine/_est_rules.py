@@ -1,0 +1,225 @@
+"""The size-estimating UIMM's rules for magnitudes (:mod:`uimm_jax.engine.uimm_est`).
+
+Internal: the restarts, floors, walks and re-opening that act on the models' magnitude
+estimates around each IMM cycle, as pure functions of the settings ``s``
+(:class:`~uimm_jax.engine.uimm_est_types.EstSettings`), the state dimension ``n`` and
+arrays with the fault axis leading and the model and run axes trailing.  The module
+doc of :mod:`uimm_jax.engine.uimm_est` says what each rule is for.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from uimm_jax.engine.imm import IMMState
+from uimm_jax.engine.uimm_est_types import EstSettings
+
+
+def gap_cap(s: EstSettings) -> int:
+    """The largest restart gap of ``s`` (``since`` counts up to it)."""
+    gaps = (s.restart_gap, s.floor_gap, s.post_gap, s.post_floor_gap, s.low_floor_age)
+    return max(*gaps, s.settle_steps if s.walk_settled else 0)
+
+
+def floor_mean(s: EstSettings, declared: jax.Array, since: jax.Array, models: bool = False):
+    """An undeclared hypothesis' floor: ``post_floor_mean`` (if set) while a fault is declared.
+
+    With ``post_floor_means`` the floor is per fault, shaped ``(F, *runs)`` (``(F, 1, *runs)``
+    with ``models``), once every declared fault is ``low_floor_age`` steps old (``since``).
+    """
+    any_decl = jnp.any(declared, axis=0)
+    if s.post_floor_means:
+        per = np.asarray(s.post_floor_means, np.float64)
+        per = per.reshape((-1,) + (1,) * (any_decl.ndim + models))
+        old = jnp.all(~declared | (since >= s.low_floor_age), axis=0)  # else the shared floor
+        per = jnp.where(old, per, s.post_floor_mean or s.floor_mean)
+        return jnp.where(any_decl, per, s.floor_mean)
+    if s.post_floor_mean <= 0:
+        return s.floor_mean
+    return jnp.where(any_decl, s.post_floor_mean, s.floor_mean)
+
+
+def newest(declared: jax.Array, since: jax.Array) -> jax.Array:
+    """``(F, *runs)``: the declared fault(s) of the smallest age ``since`` (``walk_settled``)."""
+    age = jnp.where(declared, since, jnp.iinfo(jnp.int32).max)
+    return declared & (age == jnp.min(age, axis=0))
+
+
+def moved(s: EstSettings, declared, est, est_sd, since, anchor):
+    """``settle_move``: a declared fault's age restarts when its estimate grows.
+
+    A move of more than ``settle_move`` standard deviations from ``anchor`` re-anchors the
+    estimate; a move away from nominal (the fault grew) also restarts its age ``since``,
+    so that ``walk_settled`` acts only once the fault has stopped growing.  A move
+    towards nominal does not: a settled estimate pulled down by a new fault that cancels
+    it (valve wear and air in oil in the input gain) must stay settled (docs/faults.md,
+    "Session 10").  Returns the new ``since`` and ``anchor``.
+    """
+    far = declared & (jnp.abs(est - anchor) > s.settle_move * est_sd)
+    grew = far & (jnp.abs(est) > jnp.abs(anchor))
+    return jnp.where(grew, 0, since), jnp.where(far, est, anchor)
+
+
+def own_slots(F: int, nd: int) -> np.ndarray:
+    """``(F, F + 1, 1 x nd)`` bool: slot ``j + 1`` is fault ``j``'s own hypothesis."""
+    own = np.concatenate([np.zeros((F, 1), bool), np.eye(F, dtype=bool)], axis=1)
+    return own.reshape((F, F + 1) + (1,) * nd)
+
+
+def mag_var(cov: jax.Array, n: int) -> jax.Array:
+    """``(F, M, *runs)``: every model's variance of every magnitude (``cov`` over ``[x; a]``)."""
+    return jnp.moveaxis(jnp.diagonal(cov[n:, n:], axis1=0, axis2=1), -1, 0)
+
+
+def add_mag_var(cov: jax.Array, n: int, add: jax.Array) -> jax.Array:
+    """``cov`` with ``add`` ``(F, M, *runs)`` added to the magnitudes' variances (PSD if >= 0)."""
+    F = add.shape[0]
+    eye = np.eye(F).reshape((F, F) + (1,) * (add.ndim - 1))
+    return cov.at[n:, n:].add(eye * add[None])
+
+
+def slot_of(declared: jax.Array) -> jax.Array:
+    """``(F, *runs)`` model holding each fault's magnitude estimate (0 if declared)."""
+    F = declared.shape[0]
+    own = np.arange(1, F + 1).reshape((F,) + (1,) * (declared.ndim - 1))
+    return jnp.where(declared, 0, own)
+
+
+def reset_unused(s: EstSettings, n: int, st: IMMState, use, declared, since):
+    """Magnitudes a model does not use: to the bank's belief about them, uncorrelated.
+
+    For a declared fault that is model 0's current estimate (so that mixing with the
+    retraction hypothesis "D - f_j" leaves the estimate of ``a_j`` alone).  For an
+    undeclared fault it is its hypothesis' own estimate while that hypothesis has
+    probability ``>= restart_below``, and the prior of a new fault otherwise;
+    a hypothesis below that probability restarts from the prior itself.  Mixing
+    (eqs. 15-17) then never blends a hypothesis' estimate with the prior while it
+    competes: a blend whose weight grows as the hypothesis loses probability widens
+    the loser's estimate and lowers its likelihood further, which made one of two
+    hypotheses that explain the data almost equally well (valve wear and leakage)
+    win by that feedback alone.
+
+    ``since`` ``(F, *runs)`` counts the steps since each hypothesis last restarted.  A
+    hypothesis of low probability restarts only once every ``restart_gap`` steps
+    (with ``gap_first_only``: only while nothing is declared), and evolves on its own
+    estimate in between, so that it can gather the evidence to come back: restarting
+    at every step (``restart_gap = 1``) lets a one-step likelihood decide, which never
+    pays for the prior's width (docs/faults.md, "Ramps").
+
+    Nor does it restart while the most probable model is an undeclared hypothesis
+    whose estimate is below ``race_below`` (a race of faults too small to declare):
+    early in a ramp two look-alikes (valve wear, leakage) race where only noise
+    tells them apart, and the one behind keeps gathering the evidence (``Kq``) that
+    grows with the fault.  An abrupt fault's leader starts from the prior, above the
+    bound.  With ``race_floor`` (and, with ``race_floor_first``, the defaults, only
+    while nothing is declared), while the leader's estimate is below that bound a
+    hypothesis held at its floor does not restart either: over a slow ramp the true
+    fault sits for seconds near the floor, and a hypothesis that restarts from the
+    prior whenever its estimate touches the floor never gathers the evidence to beat
+    a look-alike whose estimate has grown 2-4x the truth (docs/faults.md, "Ramps").
+    Returns the state and the new ``since``.
+    """
+    F = declared.shape[0]
+    var_all = mag_var(st.cov, n)
+    own = own_slots(F, use.ndim - 2)
+    own_mean = jnp.sum(jnp.where(own, st.mean[n:], 0.0), axis=1)  # (F, *runs)
+    own_var = jnp.sum(jnp.where(own, var_all, 0.0), axis=1)
+    any_decl = jnp.any(declared, axis=0)
+    due = since >= s.restart_gap
+    if s.post_gap > 0:
+        due = jnp.where(any_decl, since >= s.post_gap, due)
+    elif s.gap_first_only:
+        due = due | any_decl
+    lead = jnp.argmax(st.log_mode_probs, axis=0)  # (*runs,)
+    hyp = np.arange(1, F + 1).reshape((F,) + (1,) * (use.ndim - 2))
+    lead_f = (lead == hyp) & ~declared  # (F, *runs)
+    if s.race_below > 0:  # a race of faults too small to declare: no restart
+        small = jnp.any(lead_f & (own_mean < s.race_below), axis=0)
+        due = due & ~small
+    low = (st.log_mode_probs[1:] < np.log(s.restart_below)) & due
+    floor_gap = s.floor_gap
+    if s.post_floor_gap > 0:
+        floor_gap = jnp.where(any_decl, s.post_floor_gap, s.floor_gap)
+    held = (own_mean <= floor_mean(s, declared, since)) & (since >= floor_gap)  # at floor
+    if s.race_floor > 0:  # nor at the floor, in a race (docs/faults.md, "Ramps")
+        race = jnp.any(lead_f & (own_mean < s.race_floor), axis=0)
+        held = held & ~(race & ~any_decl if s.race_floor_first else race)
+    live = ~low & ~held  # (F, *runs)
+    restart = ~declared & ~live
+    since = jnp.where(restart, 1, jnp.minimum(since + 1, gap_cap(s)))
+    use = use & ~(own & restart[:, None])
+    tm = jnp.where(declared, st.mean[n:, 0], jnp.where(live, own_mean, s.prior_mean))
+    tv = jnp.where(declared, var_all[:, 0], jnp.where(live, own_var, s.prior_sd**2))
+    tm, tv = tm[:, None], tv[:, None]  # (F, 1, *runs)
+    free = jnp.concatenate([jnp.ones((n,) + use.shape[1:], bool), use], axis=0)
+    mean = jnp.concatenate([st.mean[:n], jnp.where(use, st.mean[n:], tm)], 0)
+    keep = free[:, None] & free[None]
+    eye = np.eye(n + F, dtype=bool)[n:].reshape((F, n + F) + (1,) * (use.ndim - 1))
+    diag_t = jnp.where(eye, tv[:, None], 0.0)  # (F, n+F, 1, *runs): target variances
+    target = jnp.concatenate([jnp.zeros((n, n + F) + diag_t.shape[2:], st.cov.dtype), diag_t])
+    cov = jnp.where(keep, st.cov, target)
+    return IMMState(mean, cov, st.log_mode_probs), since.astype(jnp.int32)
+
+
+def floor(s: EstSettings, n: int, st: IMMState, declared, since) -> IMMState:
+    """An undeclared hypothesis' own magnitude: mean ``>= floor_mean``, sd ``>= floor_sd``.
+
+    The hypothesis is "fault j is present": without the bound it would settle on
+    nominal in fault-free data (a copy of model 0 that keeps a share of the
+    probability) and be slow to follow a fault that appears.
+    While a fault is declared the bound is ``post_floor_mean`` if set: a challenger
+    then follows a second fault from a smaller size (docs/faults.md, "Session 9").
+    Raising a variance adds a PSD matrix (the covariance stays PSD).
+    """
+    F = declared.shape[0]
+    hyp = (~declared)[:, None] & own_slots(F, declared.ndim - 1)  # (F, M, *runs)
+    floor = floor_mean(s, declared, since, models=True)
+    mean = st.mean.at[n:].set(jnp.where(hyp, jnp.maximum(st.mean[n:], floor), st.mean[n:]))
+    var = mag_var(st.cov, n)
+    add = jnp.where(hyp, jnp.maximum(s.floor_sd**2 - var, 0.0), 0.0)
+    return st._replace(mean=mean, cov=add_mag_var(st.cov, n, add))
+
+
+def walk_rel(s: EstSettings, n: int, st: IMMState, declared, since) -> IMMState:
+    """A declared fault's random walk: standard deviation ``max(walk, walk_rel |a|)``.
+
+    ``a`` is model 0's estimate.  The variance beyond ``walk^2`` (in ``Q``) is added to
+    every model's variance of ``a`` before the step (``Q`` stays one matrix).  With
+    ``walk_rel_single`` only while no other fault is declared: a second fault can make
+    the first weakly observable (valve wear under air in oil), and a faster walk then
+    only adds error (docs/faults.md, "Ramps").  With ``walk_rel_newest`` (and
+    ``walk_settled``, whose ``since`` is a declared fault's age) it also acts on the
+    fault declared last while it is younger than ``settle_steps``: a second fault that
+    still grows is followed as the first was (docs/faults.md, "Session 9: the second
+    fault while it grows").  Adds a PSD matrix.
+    """
+    sd = jnp.maximum(s.walk, s.walk_rel * jnp.abs(st.mean[n:, 0]))  # (F, *runs)
+    grow = declared & (jnp.sum(declared, axis=0) == 1) if s.walk_rel_single else declared
+    if s.walk_settled and s.walk_rel_newest:  # also the fault declared last (``since``)
+        grow = grow | newest(declared, since)
+    if s.walk_settled:  # a settled fault walks at ``walk_settled`` instead (``step``)
+        grow = grow & (since < s.settle_steps)
+    extra = jnp.where(grow, sd**2 - s.walk**2, 0.0)[:, None]  # (F, 1, *runs)
+    return st._replace(cov=add_mag_var(st.cov, n, jnp.broadcast_to(extra, st.mean[n:].shape)))
+
+
+def reopen(s: EstSettings, n: int, st: IMMState, new: jax.Array) -> IMMState:
+    """A newly declared fault's magnitude: sd ``>= reopen_rel`` times its mean, every model.
+
+    The variance a hypothesis hands over was accumulated during the race, at
+    linearisation points on the way to the fault's size.  On ``Eh``'s log scale the
+    pressure equation's sensitivity to ``a`` falls by 10 per unit of ``a``, so a sample
+    taken at ``a_hat`` counts ``10^(2 (a - a_hat))`` times too much information (10x for
+    2 declared at 1.5, 300x for 3 at 1.75): the estimate was declared at 1.5-1.8 with
+    sd 0.02-0.03, then crept towards the truth for hundreds of ms, and the bank
+    explained the rest by retracting valve wear or declaring leakage (docs/faults.md,
+    "Sizes").  Raising the variance adds a
+    PSD matrix (the covariance stays PSD) and leaves the means (and the cache) alone.
+    """
+    if s.reopen_rel <= 0:
+        return st
+    target = (s.reopen_rel * st.mean[n:]) ** 2
+    add = jnp.where(new[:, None], jnp.maximum(target - mag_var(st.cov, n), 0.0), 0.0)
+    return st._replace(cov=add_mag_var(st.cov, n, add))
