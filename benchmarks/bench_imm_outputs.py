@@ -219,41 +219,38 @@ def _derived_scan(post_lse: bool, cov6: bool, no_copies: bool = False):
 def _donated_scan():
     """imm_filter's default fields written row by row into donated buffers.
 
-    Returns a function of no arguments over ``prep`` that passes the buffers the last
-    call returned (the same memory: XLA writes a donated buffer in place), so nothing is
-    zero-filled or freshly mapped: the outputs' cost when their memory costs nothing.
+    Returns a function of ``prep`` that passes the buffers its last call returned (the
+    same memory: XLA writes a donated buffer in place), so nothing is zero-filled or
+    freshly mapped: what the outputs cost when their memory costs nothing.
     """
 
     def run(dyn, cache, params, state0, us, ys, gate, bufs):
         b_state0, us, ys = as_batch_of_one((state0, us, ys))
 
-        def body(carry, k):
+        def body(carry, step):
             state, bufs = carry
-            new, info = imm_step(dyn, state, cache, params, us[k], ys[k], gate=gate)
+            new, info = imm_step(dyn, state, cache, params, us[step], ys[step], gate=gate)
             row = info._asdict() | {"mode_probs": jnp.exp(info.log_mode_probs)}
-            row = {k: v[..., 0] for k, v in row.items()}
+            row = {name: v[..., 0] for name, v in row.items()}
             row["loglik_increments"] = row.pop("loglik_increment")
             upd = jax.lax.dynamic_update_index_in_dim
-            return (new, {f: upd(b, row[f], k, 0) for f, b in bufs.items()}), None
+            return (new, {f: upd(b, row[f], step, 0) for f, b in bufs.items()}), None
 
         (_, bufs), _ = jax.lax.scan(body, (b_state0, bufs), jnp.arange(ys.shape[0]))
         return bufs | {"marginal_loglik": jnp.sum(bufs["loglik_increments"])}
 
     scan = jax.jit(run, static_argnums=(0, 6), donate_argnums=(7,))
+    kept = {}
 
     def call(prep):
-        bufs = _donated_scan.bufs.get(id(prep))
-        if bufs is None:  # outputs' shapes and dtypes, once, before the timing
+        if not kept:  # the outputs' shapes and dtypes, once, before the timing
             ref = _imm_scan(*prep, _DEFAULT)
-            bufs = {k: jnp.zeros_like(v) for k, v in ref.items() if k != "marginal_loglik"}
-        out = scan(*prep, bufs)
-        _donated_scan.bufs[id(prep)] = {k: v for k, v in out.items() if k != "marginal_loglik"}
+            kept.update({k: jnp.zeros_like(v) for k, v in ref.items() if k != "marginal_loglik"})
+        out = scan(*prep, dict(kept))
+        kept.update({k: v for k, v in out.items() if k != "marginal_loglik"})
         return out
 
     return call
-
-
-_donated_scan.bufs = {}
 
 
 def _post_scan(prep, public) -> dict:
