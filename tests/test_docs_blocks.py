@@ -207,6 +207,7 @@ BLOCKS = (
     Entry("benchmarks/README.md", "B=1 N=1000000: final declared sets equal", "text"),
     Entry("benchmarks/README.md", "bench_imm_outputs.py --leave-one-out", "flags", reason=BENCH),
     Entry("benchmarks/README.md", "bench_imm_outputs.py --selections", "flags", reason=BENCH),
+    Entry("benchmarks/README.md", "bench_imm_outputs.py --post-scan", "flags", reason=BENCH),
     Entry("benchmarks/README.md", "bench_imm_chunks.py", "flags", reason=BENCH),
     Entry("benchmarks/README.md", "bench_montecarlo.py --json mc.json", "flags", reason=BENCH),
     Entry("benchmarks/README.md", "bench_gradient.py --batch 1 --repeat 3", "flags",
