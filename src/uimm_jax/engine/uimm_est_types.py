@@ -41,11 +41,13 @@ class EstSettings(NamedTuple):
     "Session 10, last"; the acceptance lines there): ``walk_settled=3e-5``,
     ``settle_steps=3000``, ``settle_move=10``, ``post_floor_gap=200``, ``retract_hold=200``,
     ``walk_rel_newest``, ``post_floor_mean=0.02``, ``race_floor_first=False`` and
-    ``low_floor_age=8000``.  Measured against session 10's defaults on the actuator
-    (64 runs per cell, with the per-fault floors below): sim 2's 1 s ramps 0 false
-    declarations in 320 runs (0, 1, 8, 18, 53 per 64 at magnitudes 0.3-3) and its 10 s
-    ramps 3, 3, 1, 0, 0 per 64 (every run), sim 1's 10 s ramps 0, 3, 1, 0, 0 (0, 2, 0, 0,
-    0), every abrupt, 1 s ramp, intermittent, paper and fault-free cell 0 false.
+    ``low_floor_age=8000``.  Measured on the actuator (64 runs per cell, with the
+    per-fault floors below; session 10's defaults in brackets): false declarations per
+    64 at magnitudes 0.3-3, sim 2's 1 s ramps 0, 0, 0, 0, 0 (0, 1, 8, 18, 53) and 10 s
+    ramps 3, 3, 1, 0, 0 (every run), sim 1's 10 s ramps 0, 3, 1, 0, 0 (0, 2, 0, 0, 0);
+    every abrupt, 1 s ramp, intermittent, paper and fault-free cell 0 false; retractions
+    about twice as slow (``retract_hold``).  The settings counted in steps were measured
+    at the actuator's ``dt`` = 1e-4 s.
     **A per-fault setting has no default beyond "the same for every fault"**:
     ``post_floor_means`` is empty (``post_floor_mean``, 0.02, for every fault), because a
     tuple per fault cannot fit a plant with another fault count; the fault library that
