@@ -21,6 +21,19 @@ REPO = Path(__file__).resolve().parents[1]
 SCENARIOS = REPO / "scenarios"
 TUNED = {1: SCENARIOS / "paper_sim1_tuned.toml", 2: SCENARIOS / "paper_sim2_tuned.toml"}
 CHUNK = 10_000  # steps per compiled chunk: every run below is a multiple of it
+# uimm-est's EstSettings as in session 10, before the settings "S10a" became the defaults
+# (session 11): the post-declaration rules off; tests of those rules start from it.
+SESSION10_EST = {
+    "walk_settled": 0.0,
+    "settle_steps": 0,
+    "post_floor_gap": 0,
+    "retract_hold": 0,
+    "walk_rel_newest": False,
+    "post_floor_mean": 0.0,
+    "race_floor_first": True,
+    "settle_move": 0.0,
+    "low_floor_age": 0,
+}
 
 
 def with_est_settings(setup, settings):

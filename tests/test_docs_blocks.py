@@ -185,7 +185,9 @@ BLOCKS = (
           part_of="scenarios/paper_sim1.toml"),
     Entry("docs/scenarios.md", "# Paper simulation 1 (section 4.2, Table 2).", "toml"),
     Entry("docs/scenarios.md", "variant = parse_scenario(d", "run"),
-    Entry("docs/scenarios.md", "[filter.est]              # settings \"S10a\"", "toml",
+    Entry("docs/scenarios.md", "[filter.est]\npost_floor_means = [0.02, 0.02, 0.002]", "toml",
+          part_of="scenarios/paper_sim2_tuned.toml"),
+    Entry("docs/scenarios.md", "[filter.est]              # session 10's defaults", "toml",
           merge_into="scenarios/paper_sim2_tuned.toml", check="filter_est"),
     # ---------------------------------------------------------------- docs/tuning.md
     Entry("docs/tuning.md", "--eval-runs 200 --out tuned.toml", "run",

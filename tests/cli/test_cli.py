@@ -228,8 +228,10 @@ def test_run_prints_sizes_and_retractions_of_uimm_est(tmp_path, capsys, monkeypa
     text = capsys.readouterr().out
     summary = json.loads((out / "summary.json").read_text())
     assert summary["method"] == "uimm-est" and summary["retractions"]
-    # no [filter.est]: the defaults (as JSON writes them: a per-fault tuple as a list)
-    assert summary["est_settings"] == json.loads(json.dumps(EstSettings()._asdict()))
+    # the tuned file's [filter.est]: the defaults and its per-fault floors (as JSON writes
+    # them: a per-fault tuple as a list)
+    est = EstSettings(post_floor_means=(0.02, 0.02, 0.002))
+    assert summary["est_settings"] == json.loads(json.dumps(est._asdict()))
     for dec in summary["declarations"]:
         lo, hi = dec["magnitude_ci"]
         want = f"magnitude {dec['magnitude']:.3g} [{lo:.3g}, {hi:.3g}]"

@@ -370,19 +370,19 @@ def test_race_floor_keeps_a_lookalike_at_its_floor_filtering(lead_mean, kept):
     # Valve wear's hypothesis sits at its floor (probability 0.1, not improbable).  While
     # leakage leads below race_floor it keeps its own estimate at the floor; led by a
     # larger leakage, or by model 0, or with the setting off, it restarts from the prior,
-    # as every hypothesis held at its floor does.  Nothing is declared here, so the
-    # default (race_floor_first) and the rule in every phase act alike.
+    # as every hypothesis held at its floor does.  Nothing is declared here, so the rule
+    # in every phase (the default since session 11) and race_floor_first act alike.
     st = _est_setup(sim=1)
     diag = st.diagnoser
     s = diag.settings
-    assert (s.race_floor, s.race_floor_first) == (0.3, True)  # the defaults
+    assert (s.race_floor, s.race_floor_first) == (0.3, False)  # the defaults
     imm0, sets, declared, since = _race_state(diag, 2, lead_mean)
     mean = imm0.mean.at[3, 1].set(s.floor_mean)  # valve wear's own estimate at the floor
     lp = imm0.log_mode_probs.at[1].set(np.log(0.1))
     state = (imm0._replace(mean=mean, log_mode_probs=lp), sets, declared, since)
-    every = _diag_with(diag, race_floor_first=False)
+    first = _diag_with(diag, race_floor_first=True)
     off = _diag_with(diag, race_floor=0.0)
-    for d2, want in ((every, kept), (diag, kept), (off, False)):
+    for d2, want in ((diag, kept), (first, kept), (off, False)):
         imm, _ = rules.reset_unused(d2.settings, d2.dyn.n, *state)
         own = np.asarray(imm.mean[3, 1])  # valve wear's own magnitude, per run
         var = np.asarray(imm.cov[3, 3, 1])
@@ -407,8 +407,8 @@ def test_walk_rel_single_grows_a_lone_declared_faults_walk_only():
     declared = jnp.asarray([[True, True], [False, True], [False, False]])  # run 1: both
     extra = (s.walk_rel * 2.0) ** 2 - s.walk**2
     assert s.walk_rel_single and extra > 0
-    for single in (True, False):
-        d2 = _diag_with(diag, walk_rel_single=single)
+    for single in (True, False):  # walk_rel_newest (on by default) is test_second_fault's
+        d2 = _diag_with(diag, walk_rel_single=single, walk_rel_newest=False)
         since = jnp.ones(declared.shape, jnp.int32)
         got = np.asarray(rules.walk_rel(d2.settings, d2.dyn.n, state, declared, since).cov) - cov
         want = np.zeros_like(cov)

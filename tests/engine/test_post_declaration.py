@@ -1,4 +1,8 @@
-"""uimm-est after a declaration: the settings of docs/faults.md, "Session 8" (off by default)."""
+"""uimm-est after a declaration: the settings of docs/faults.md, "Session 8".
+
+They were off by default until session 11 (the settings "S10a" are the defaults since):
+each test states the settings it compares, from session 10's (``SESSION10_EST``).
+"""
 
 from __future__ import annotations
 
@@ -8,7 +12,7 @@ import os
 import numpy as np
 import pytest
 
-from _robustness_helpers import short_dict, with_est_settings
+from _robustness_helpers import SESSION10_EST, short_dict, with_est_settings
 from uimm_jax.engine import _est_rules as rules
 from uimm_jax.scenario.parse import parse_scenario
 
@@ -30,8 +34,9 @@ def _run(st, seed=0):
 
 
 def test_floor_restart_is_spaced_by_post_floor_gap_only_after_a_declaration():
-    """A hypothesis held at the floor restarts at every step (the default) or, with
-    ``post_floor_gap``, once every ``post_floor_gap`` steps while a fault is declared."""
+    """A hypothesis held at the floor restarts at every step (``post_floor_gap = 0``) or,
+    with ``post_floor_gap`` (200 by default since session 11), once every
+    ``post_floor_gap`` steps while a fault is declared."""
     import jax.numpy as jnp
 
     from uimm_jax.engine.uimm_est import EstSettings
@@ -53,11 +58,13 @@ def test_floor_restart_is_spaced_by_post_floor_gap_only_after_a_declaration():
 
     prior = diag.settings.prior_mean
     decl, none = [True, False, False], [False, False, False]
-    assert own_after(EstSettings(), decl) == (prior, 1)  # restarted at once
-    spaced = EstSettings(post_floor_gap=200)
+    off = EstSettings(**SESSION10_EST)  # one floor, floor_mean, declared or not
+    assert own_after(off, decl) == (prior, 1)  # restarted at once
+    spaced = off._replace(post_floor_gap=200)  # the default's gap
+    assert spaced.post_floor_gap == EstSettings().post_floor_gap
     assert own_after(spaced, decl) == (floor, 6)  # held: not yet due
     assert own_after(spaced, none) == (prior, 1)  # before any declaration: the default rule
-    assert own_after(EstSettings(post_floor_gap=5), decl) == (prior, 1)  # due after 5 steps
+    assert own_after(off._replace(post_floor_gap=5), decl) == (prior, 1)  # due after 5 steps
 
 
 def test_retract_hold_delays_a_retraction_by_at_least_its_samples():
@@ -89,9 +96,9 @@ def test_explicit_post_settings_equal_to_the_defaults_change_nothing():
         {"time": 0.2, "fault": "valve_wear", "magnitude": 2.0},
         {"time": 0.4, "fault": "air_in_oil", "magnitude": 2.0, "end": 0.6},
     ]
-    base = _run(_setup(2, ev, 0.7, EstSettings()))
+    base = _run(_setup(2, ev, 0.7, EstSettings(**SESSION10_EST)))
     # retract_hold = the filter's hold; post gaps of 1 = restart at every step
-    same = EstSettings(retract_hold=100, post_gap=1, post_floor_gap=1)
+    same = EstSettings(**SESSION10_EST | dict(retract_hold=100, post_gap=1, post_floor_gap=1))
     other = _run(_setup(2, ev, 0.7, same))
     assert [x["fault"] for x in base.summary["declarations"]] == ["valve_wear", "air_in_oil"]
     for key in ("declared", "magnitude", "mode_probs"):
@@ -102,11 +109,11 @@ def test_explicit_post_settings_equal_to_the_defaults_change_nothing():
 def test_post_settings_keep_a_declared_wear_while_air_in_oil_grows(post):
     """Sim 2: valve wear declared, then air in oil ramps in (docs/faults.md, "Session 8").
 
-    Traced (this run, seed 0): with the shipped settings model 0's valve-wear estimate
-    absorbs the growing air in oil and valve wear is retracted while present (then air in
-    oil is declared alone).  With ``walk_settled`` (3e-4 once declared for 0.5 s) and
-    ``post_floor_gap`` (200) valve wear stays declared and air in oil is declared with it;
-    ``walk_settled`` alone does not do it here.
+    Traced (this run, seed 0): with session 10's settings (``SESSION10_EST``) model 0's
+    valve-wear estimate absorbs the growing air in oil and valve wear is retracted while
+    present (then air in oil is declared alone).  With ``walk_settled`` (3e-4 once
+    declared for 0.5 s) and ``post_floor_gap`` (200) valve wear stays declared and air in
+    oil is declared with it; ``walk_settled`` alone does not do it here.
     """
     from uimm_jax.engine.uimm_est import EstSettings
 
@@ -115,7 +122,7 @@ def test_post_settings_keep_a_declared_wear_while_air_in_oil_grows(post):
         {"time": 1.0, "fault": "air_in_oil", "magnitude": 1.0, "ramp": 1.0},
     ]
     extra = dict(walk_settled=3e-4, settle_steps=5000, post_floor_gap=200) if post else {}
-    res = _run(_setup(2, ev, 1.5, EstSettings(**extra)))
+    res = _run(_setup(2, ev, 1.5, EstSettings(**SESSION10_EST | extra)))
     codes = np.asarray(res.outputs["declared"])
     wear_kept = bool(np.all(codes[2500:] & 1))
     assert wear_kept == post

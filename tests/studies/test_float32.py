@@ -95,7 +95,12 @@ def pair():
     out = {}
     for sim in (1, 2):
         for key, changes in ((sim, {}), ((sim, "uimm"), {"filter__method": "uimm"})):
-            sc = short_scenario(sim, **changes)
+            if changes:  # the tuned file's [filter.est] is uimm-est's only
+                d = short_dict(sim, **changes)
+                d["filter"].pop("est")
+                sc = parse_scenario(d)
+            else:
+                sc = short_scenario(sim)
             r64 = run_scenario(sc, chunk=CHUNK)
             r32 = run_scenario_float32(sc, chunk=CHUNK)
             out[key] = (sc, r64, r32)

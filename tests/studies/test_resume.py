@@ -156,20 +156,23 @@ def test_resume_refuses_another_scenario_and_names_the_field(finished):
         mc.run_sweep(other, checkpoint=out, resume=True)
 
 
-def with_est(sc, **est):
-    """``sc`` with a ``[filter.est]`` table (its method is uimm-est)."""
+def with_est(sc, est=(), **values):
+    """``sc`` with a ``[filter.est]`` table of ``values`` only (its method is uimm-est);
+    with ``est=None``, without the table (the tuned file's)."""
     from uimm_jax.scenario.parse import parse_scenario
     from uimm_jax.scenario.write import scenario_to_dict
 
     d = scenario_to_dict(sc)
-    d["filter"]["est"] = est
+    d["filter"]["est"] = values
+    if est is None:
+        del d["filter"]["est"]
     return parse_scenario(d, source="est")
 
 
 def test_resume_refuses_other_est_settings_and_names_them(finished, tmp_path):
     # [filter.est] is part of the scenario the checkpoint records: each differing setting
-    # is named (a manifest-level check, no sweep runs), and a checkpoint made without the
-    # table refuses a scenario with one.
+    # is named (a manifest-level check, no sweep runs), a resumed sweep refuses it too,
+    # and a checkpoint made without the table refuses a scenario with one.
     sc, out, _ = finished
     spec, shape = sweep_spec(sc), (10, 2, 3, 3)
     then = sweep_store.manifest_for(with_est(sc, walk=1e-3), spec, np.float64, 32, 1)
@@ -179,8 +182,13 @@ def test_resume_refuses_other_est_settings_and_names_them(finished, tmp_path):
     with pytest.raises(ValueError, match=named):
         sweep_store.open_store(tmp_path, now, resume=True, shape=shape)
     sweep_store.open_store(tmp_path, then, resume=True, shape=shape)  # the same: resumed
-    with pytest.raises(ValueError, match=r"scenario\.filter\.est \(absent then, \{"):
+    # the finished sweep ran with the tuned file's table (walk 1e-3, the default)
+    with pytest.raises(ValueError, match=named):
         mc.run_sweep(with_est(sc, walk=2e-3), checkpoint=out, resume=True)
+    bare = sweep_store.manifest_for(with_est(sc, est=None), spec, np.float64, 32, 1)
+    sweep_store.open_store(tmp_path / "bare", bare, resume=False, shape=shape)
+    with pytest.raises(ValueError, match=r"scenario\.filter\.est \(absent then, \{"):
+        sweep_store.open_store(tmp_path / "bare", now, resume=True, shape=shape)
 
 
 def one_run(**fields):

@@ -22,15 +22,17 @@ the prior, and the retraction hypothesis leaves a declared estimate alone.
 A hypothesis restarts at most once every ``restart_gap`` steps for its low
 probability (``floor_gap`` for being held at the floor; both 1 by default), and not at all
 while the leading hypothesis is still too small to be declared (``race_below``; and
-with ``race_floor``, while nothing is declared, not at the floor either); a
+with ``race_floor``, not at the floor either); a
 declared fault's walk grows with its size while it is the only declared fault
 (``walk_rel``, ``walk_rel_single``; docs/faults.md, "Ramps").
 While a fault is declared, ``walk_settled``, ``post_gap``, ``post_floor_gap`` and
-``retract_hold`` (off by default; docs/faults.md, "Session 8: after a declaration")
-change these rules, and ``walk_rel_newest`` and ``post_floor_mean`` (off by default;
-docs/faults.md, "Session 9") those for a second fault; ``post_floor_means`` (a floor per
-fault) and ``settle_move`` (a fault settles only once its estimate stops growing) refine
-them (off by default; docs/faults.md, "Session 10").
+``retract_hold`` (docs/faults.md, "Session 8: after a declaration") change these rules,
+and ``walk_rel_newest`` and ``post_floor_mean`` (docs/faults.md, "Session 9") those for a
+second fault; ``post_floor_means`` (a floor per fault, from ``low_floor_age`` steps on)
+and ``settle_move`` (a fault settles only once its estimate stops growing) refine them
+(docs/faults.md, "Session 10").  Since session 11 the defaults are the settings "S10a"
+of docs/faults.md (all of these on but ``post_gap``; ``post_floor_means`` is per fault,
+so it is empty by default and set by the actuator's scenario files; :class:`EstSettings`).
 An undeclared hypothesis' own magnitude is kept ``>= floor_mean`` (and its standard
 deviation ``>= floor_sd``), so that it means "a fault" and does not settle on nominal in
 fault-free data; ``floor_mean`` is below ``declare_min`` so that the bound never decides

@@ -37,6 +37,25 @@ class EstSettings(NamedTuple):
     to :func:`~uimm_jax.engine.uimm_est.build_diagnoser` is checked by
     :func:`check_est_settings`.
 
+    **The defaults** (since session 11) are the settings "S10a" of docs/faults.md ("Ramps",
+    "Session 10, last"; the acceptance lines there): ``walk_settled=3e-5``,
+    ``settle_steps=3000``, ``settle_move=10``, ``post_floor_gap=200``, ``retract_hold=200``,
+    ``walk_rel_newest``, ``post_floor_mean=0.02``, ``race_floor_first=False`` and
+    ``low_floor_age=8000``.  Measured on the actuator (64 runs per cell, with the
+    per-fault floors below; session 10's defaults in brackets): false declarations per
+    64 at magnitudes 0.3-3, sim 2's 1 s ramps 0, 0, 0, 0, 0 (0, 1, 8, 18, 53) and 10 s
+    ramps 3, 3, 1, 0, 0 (every run), sim 1's 10 s ramps 0, 3, 1, 0, 0 (0, 2, 0, 0, 0);
+    every abrupt, 1 s ramp, intermittent, paper and fault-free cell 0 false; retractions
+    about twice as slow (``retract_hold``).  The settings counted in steps were measured
+    at the actuator's ``dt`` = 1e-4 s.
+    **A per-fault setting has no default beyond "the same for every fault"**:
+    ``post_floor_means`` is empty (``post_floor_mean``, 0.02, for every fault), because a
+    tuple per fault cannot fit a plant with another fault count; the fault library that
+    needs its own floors sets them with it (the actuator's ``paper_sim*_tuned.toml``:
+    ``post_floor_means = [0.02, 0.02, 0.002]``, air in oil's 0.002), and S10a's figures
+    are those of that file.  Without it (this class' defaults alone on the actuator) sim
+    2's 10 s ramps fail at 0.3-0.5 (docs/faults.md, "Session 10": 15 and 12 false per 16).
+
     Attributes:
         walk: random-walk standard deviation of a magnitude per step.
         prior_mean: prior magnitude of a new fault (1: the library's value).
@@ -68,7 +87,8 @@ class EstSettings(NamedTuple):
         post_gap: steps between two restarts for low probability while a fault is
             declared (0: ``restart_gap``, or 1 with ``gap_first_only``).
         walk_settled: a declared fault's walk standard deviation once it has been
-            declared ``settle_steps`` steps (0: off), so that it does not absorb a new fault.
+            declared ``settle_steps`` steps (0: off), so that it does not absorb a new fault
+            (default 3e-5 since session 11, with ``settle_steps=3000``).
         settle_steps: steps after its declaration during which a fault walks as above
             (``walk``, ``walk_rel``), to follow a fault still growing.
         post_floor_gap: steps between two restarts of a hypothesis held at the floor
@@ -83,16 +103,18 @@ class EstSettings(NamedTuple):
             estimate is below this, a hypothesis held at its floor does not restart from
             the prior either, but keeps filtering at the floor (0: off; see
             ``_est_rules.reset_unused``; default 0.3 since session 9, docs/faults.md).
-        race_floor_first: ``race_floor`` holds only while no fault is declared (default).
+        race_floor_first: ``race_floor`` holds only while no fault is declared (the
+            default of sessions 9-10; false since session 11: in every phase).
         tangent_order: Taylor degree of the zero-order hold through which the cache's
             derivatives in the magnitudes are taken (0: the hold's own, 12); a cheaper
             rebuild that moves the outputs in the last digits (default 6 since session 10:
             the same acceptance cells, a step 8-9 % cheaper; docs/faults.md, "Cost",
             "Session 10"; continuous linear plants only).
         post_floor_means: per fault (the fault table's order), ``post_floor_mean`` of
-            that fault's hypothesis (empty: ``post_floor_mean`` for all): a floor in each
-            fault's own units (air in oil's 0.02 lowers ``Eh`` by 4.5 %, more than all of
-            valve wear at 0.3; docs/faults.md, "Session 10").
+            that fault's hypothesis (empty, the default: ``post_floor_mean`` for all): a
+            floor in each fault's own units (air in oil's 0.02 lowers ``Eh`` by 4.5 %, more
+            than all of valve wear at 0.3; docs/faults.md, "Session 10"), set with the
+            fault library (above).
         settle_move: with ``walk_settled``, a declared fault's age (``since``) restarts
             whenever model 0's estimate has moved more than this many of its standard
             deviations away from nominal since the last such move (``EstState.anchor``),
@@ -122,18 +144,18 @@ class EstSettings(NamedTuple):
     race_below: float = 0.15
     walk_rel_single: bool = True
     post_gap: int = 0
-    walk_settled: float = 0.0
-    settle_steps: int = 0
-    post_floor_gap: int = 0
-    retract_hold: int = 0
-    walk_rel_newest: bool = False
-    post_floor_mean: float = 0.0
+    walk_settled: float = 3e-5
+    settle_steps: int = 3000
+    post_floor_gap: int = 200
+    retract_hold: int = 200
+    walk_rel_newest: bool = True
+    post_floor_mean: float = 0.02
     race_floor: float = 0.3
-    race_floor_first: bool = True
+    race_floor_first: bool = False
     tangent_order: int = 6
     post_floor_means: tuple[float, ...] = ()
-    settle_move: float = 0.0
-    low_floor_age: int = 0
+    settle_move: float = 10.0
+    low_floor_age: int = 8000
 
 
 # -- validation: the one place that says what a setting may be ---------------------------

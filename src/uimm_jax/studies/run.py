@@ -468,7 +468,8 @@ def decision_changes(outputs: dict, truth_codes, names, dt: float, hold: int = 0
     outputs (a size-estimating diagnoser) a declaration carries the estimate and its 95 %
     interval at the end of the run; if it was retracted, ``hold + 1`` samples before the
     retraction, when the retraction rule began to count (after that the estimate follows
-    the fault's end).
+    the fault's end; ``hold``: the samples that rule counts, uimm-est's ``retract_hold``
+    or the filter's ``hold``).
 
     Returns:
         ``{"declarations": [...], "retractions": [...]}``; the declarations only when the
@@ -536,7 +537,10 @@ def summarize(
     found = metrics.detected(onset, decl_step)
     decl = metrics.declaration_list(decl_step, names, dt)
     is_false = [bool(false_mask[names.index(d["fault"])]) for d in decl]
-    changes = decision_changes(outputs, truth_codes, names, dt, int(sc.filter.decision.hold))
+    hold = int(sc.filter.decision.hold)
+    if isinstance(diag, UIMMEstDiagnoser) and diag.settings.retract_hold:
+        hold = int(diag.settings.retract_hold)  # the samples its retraction rule counts
+    changes = decision_changes(outputs, truth_codes, names, dt, hold)
     if "declarations" in changes:  # a diagnoser that retracts: every switch on counts
         decl = changes["declarations"]
         is_false = [not d["correct"] for d in decl]
