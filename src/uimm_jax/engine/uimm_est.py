@@ -197,7 +197,7 @@ class UIMMEstDiagnoser(Diagnoser):
         def cand_set(c):
             full = self._candidate_set(c, declared)
             new = full & ~declared
-            big = est >= s.declare_min
+            big = rules.declarable(s, declared, est, est_sd)
             return jnp.where(jnp.any(new & ~big, axis=0), declared, full)
 
         dec = decide(
