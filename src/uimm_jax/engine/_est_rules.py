@@ -41,6 +41,23 @@ def floor_mean(s: EstSettings, declared: jax.Array, since: jax.Array, models: bo
     return jnp.where(any_decl, s.post_floor_mean, s.floor_mean)
 
 
+def declarable(s: EstSettings, declared, est, est_sd) -> jax.Array:
+    """``(F, *runs)``: faults whose estimate allows a declaration (``declare_rel`` et al.).
+
+    The estimate ``est`` (each fault's own hypothesis' for an undeclared fault) must be at
+    least ``declare_min``; with ``declare_rel``, while no fault is declared, its standard
+    deviation ``est_sd`` at most ``declare_rel`` times it.  Early in a slow ramp the true
+    fault is below its floor and restarts, and a look-alike (leakage for valve wear) wins
+    with an estimate of relative sd 0.22-0.28 where the true fault's first declaration has
+    0.06-0.14, an abrupt one's 0.01-0.03 (docs/faults.md, "Session 11").
+    """
+    big = est >= s.declare_min
+    if s.declare_rel > 0:
+        first = ~jnp.any(declared, axis=0)
+        big = big & (~first | (est_sd <= s.declare_rel * est))
+    return big
+
+
 def newest(declared: jax.Array, since: jax.Array) -> jax.Array:
     """``(F, *runs)``: the declared fault(s) of the smallest age ``since`` (``walk_settled``)."""
     age = jnp.where(declared, since, jnp.iinfo(jnp.int32).max)

@@ -42,7 +42,9 @@ hypotheses at the bound, where neither can be declared).
 **Decisions** (eq. 29 and persistence, :func:`uimm_jax.engine.decision.decide`):
 
 * declare ``j`` when ``D + f_j`` is the most probable model, with ``mu >= threshold`` for
-  ``hold`` samples and its estimate of ``a_j`` at least ``declare_min``;
+  ``hold`` samples and its estimate of ``a_j`` at least ``declare_min`` (with
+  ``declare_rel``, off by default, a first declaration also needs the estimate's sd at most
+  ``declare_rel`` of it; docs/faults.md, "Session 11");
 * retract ``j`` when ``D - f_j`` wins in the same way, or when model 0's estimate of
   ``a_j`` stays below ``retract_below`` for ``hold`` samples (the estimate returned to
   nominal).
@@ -199,7 +201,7 @@ class UIMMEstDiagnoser(Diagnoser):
         def cand_set(c):
             full = self._candidate_set(c, declared)
             new = full & ~declared
-            big = est >= s.declare_min
+            big = rules.declarable(s, declared, est, est_sd)
             return jnp.where(jnp.any(new & ~big, axis=0), declared, full)
 
         dec = decide(

@@ -125,6 +125,11 @@ class EstSettings(NamedTuple):
             floors hold only while every declared fault is at least this many steps old
             (its ``since``); before, ``post_floor_mean`` (0: off, always the per-fault
             floors; docs/faults.md, "Session 10, last").
+        declare_rel: while no fault is declared, a fault is declared only if its
+            estimate's standard deviation is at most this fraction of the estimate (the
+            estimate at least ``1 / declare_rel`` of its sd from nominal; 0: off): a
+            look-alike that wins the race while the true fault is small is declared
+            with a loose estimate (docs/faults.md, "Session 11").
     """
 
     walk: float = 1e-3
@@ -156,6 +161,7 @@ class EstSettings(NamedTuple):
     post_floor_means: tuple[float, ...] = ()
     settle_move: float = 10.0
     low_floor_age: int = 8000
+    declare_rel: float = 0.0
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -188,6 +194,7 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "post_floor_means": (0.0, False, "magnitudes, one per fault; empty: off"),
     "settle_move": (0.0, False, "standard deviations; 0: off"),
     "low_floor_age": (0, False, "steps; 0: off"),
+    "declare_rel": (0.0, False, "a fraction of the estimate; 0: off"),
 }
 _HIGH = {"restart_below": 1.0, "tangent_order": 12}
 
