@@ -1,4 +1,4 @@
-"""uimm-est's first declaration: ``declare_rel`` (docs/faults.md, "Session 11"; off by default)."""
+"""uimm-est's first declaration: ``declare_rel`` (docs/faults.md, "Session 11"; 0.15 by default)."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ def test_declare_rel_refuses_a_loose_estimate_only_while_nothing_is_declared():
     est = jnp.asarray([[0.05, 0.05, 0.05, 0.5], [0.3, 0.3, 0.1, 0.3]])
     sd = jnp.asarray([[0.5, 0.5, 0.5, 0.01], [0.05, 0.09, 0.001, 0.09]])
     on = declarable(EstSettings(declare_rel=0.2), declared, est, sd)
-    off = declarable(EstSettings(), declared, est, sd)
+    off = declarable(EstSettings(declare_rel=0.0), declared, est, sd)
     np.testing.assert_array_equal(on[1], [True, False, False, True])
     np.testing.assert_array_equal(off[1], [True, True, False, True])
     np.testing.assert_array_equal(on[0], [False, False, False, True])

@@ -43,7 +43,7 @@ hypotheses at the bound, where neither can be declared).
 
 * declare ``j`` when ``D + f_j`` is the most probable model, with ``mu >= threshold`` for
   ``hold`` samples and its estimate of ``a_j`` at least ``declare_min`` (with
-  ``declare_rel``, off by default, a first declaration also needs the estimate's sd at most
+  ``declare_rel``, 0.15 by default, a first declaration also needs the estimate's sd at most
   ``declare_rel`` of it; docs/faults.md, "Session 11");
 * retract ``j`` when ``D - f_j`` wins in the same way, or when model 0's estimate of
   ``a_j`` stays below ``retract_below`` for ``hold`` samples (the estimate returned to
