@@ -130,3 +130,47 @@ def test_settle_move_restarts_a_fault_s_age_only_when_its_estimate_grows():
     new_since, new_anchor = moved(s, declared, est, sd, since, anchor)
     np.testing.assert_array_equal(new_since, [[0, 150, 150, 150]])
     np.testing.assert_allclose(new_anchor, [[0.6, 0.4, 0.5, 0.5]])
+
+
+def test_settle_anchor_re_anchors_a_fault_when_it_settles():
+    """``settle_anchor``: the anchor moves to the estimate on the step the age reaches
+    ``settle_steps`` (not before, not after, not for an undeclared fault)."""
+    import jax.numpy as jnp
+
+    from uimm_jax.engine._est_rules import settled_anchor
+    from uimm_jax.engine.uimm_est import EstSettings
+
+    s = EstSettings(walk_settled=3e-5, settle_steps=100, settle_move=10.0, settle_anchor=True)
+    # runs: settles now, still young, settled long ago, settles now but not declared
+    declared = jnp.asarray([[True, True, True, False]])
+    before = jnp.asarray([[99, 50, 150, 99]], jnp.int32)
+    since = jnp.asarray([[100, 51, 151, 100]], jnp.int32)
+    est = jnp.full((1, 4), 0.3)
+    anchor = jnp.full((1, 4), 0.285)
+    got = settled_anchor(s, declared, before, since, est, anchor)
+    np.testing.assert_allclose(got, [[0.3, 0.285, 0.285, 0.285]])
+
+
+def test_retract_race_keeps_challengers_while_a_retraction_hypothesis_leads():
+    """``retract_race``: while "D - f_j" leads, a challenger of low probability keeps its
+    own estimate; while model 0 leads it restarts from the prior, as without the setting."""
+    import jax.numpy as jnp
+
+    from uimm_jax.engine.imm import IMMState
+
+    diag = _diag()
+    n, F, M = diag.dyn.n, diag.num_faults, diag.num_models
+    declared = jnp.asarray([[True, True], [False, False], [False, False]])  # valve wear
+    mean = np.zeros((n + F, M, 2))
+    mean[n : n + F] = 0.3
+    mean[n + 2, 3] = 0.01  # air in oil's own hypothesis (slot 3), far below the prior
+    cov = np.broadcast_to(np.eye(n + F)[..., None, None] * 1e-4, (n + F, n + F, M, 2)).copy()
+    lp = np.log(np.full((M, 2), 1e-5))
+    lp[1, 0] = lp[0, 1] = np.log(0.99)  # run 0: "D - valve wear" leads; run 1: D leads
+    state = IMMState(jnp.asarray(mean), jnp.asarray(cov), jnp.asarray(lp))
+    since = jnp.full((F, 2), 500, jnp.int32)
+    use = diag.model_sets(declared)
+    s = diag.settings
+    for on, want in ((False, [s.prior_mean, s.prior_mean]), (True, [0.01, s.prior_mean])):
+        st, _ = rules.reset_unused(s._replace(retract_race=on), n, state, use, declared, since)
+        np.testing.assert_allclose(np.asarray(st.mean)[n + 2, 3], want)
