@@ -132,25 +132,6 @@ def test_settle_move_restarts_a_fault_s_age_only_when_its_estimate_grows():
     np.testing.assert_allclose(new_anchor, [[0.6, 0.4, 0.5, 0.5]])
 
 
-def test_settle_anchor_re_anchors_a_fault_when_it_settles():
-    """``settle_anchor``: the anchor moves to the estimate on the step the age reaches
-    ``settle_steps`` (not before, not after, not for an undeclared fault)."""
-    import jax.numpy as jnp
-
-    from uimm_jax.engine._est_rules import settled_anchor
-    from uimm_jax.engine.uimm_est import EstSettings
-
-    s = EstSettings(walk_settled=3e-5, settle_steps=100, settle_move=10.0, settle_anchor=True)
-    # runs: settles now, still young, settled long ago, settles now but not declared
-    declared = jnp.asarray([[True, True, True, False]])
-    before = jnp.asarray([[99, 50, 150, 99]], jnp.int32)
-    since = jnp.asarray([[100, 51, 151, 100]], jnp.int32)
-    est = jnp.full((1, 4), 0.3)
-    anchor = jnp.full((1, 4), 0.285)
-    got = settled_anchor(s, declared, before, since, est, anchor)
-    np.testing.assert_allclose(got, [[0.3, 0.285, 0.285, 0.285]])
-
-
 def test_retract_race_keeps_challengers_while_a_retraction_hypothesis_leads():
     """``retract_race``: while "D - f_j" leads, a challenger of low probability keeps its
     own estimate; while model 0 leads it restarts from the prior, as without the setting."""

@@ -62,22 +62,6 @@ def moved(s: EstSettings, declared, est, est_sd, since, anchor):
     return jnp.where(grew, 0, since), jnp.where(far, est, anchor)
 
 
-def settled_anchor(s: EstSettings, declared, before, since, est, anchor):
-    """``settle_anchor``: a fault that settles now is re-anchored on its estimate ``est``.
-
-    It settles when its age ``since`` reaches ``settle_steps`` (from ``before``).
-
-    ``settle_move`` re-anchors only on moves of more than ``settle_move`` sd, so the
-    anchor of a fault that stopped growing can stay where the estimate was while it caught
-    up with the end of the ramp, up to that many sd below the settled value; a small move
-    of the settled estimate (noise) then counts as growth, restarts the age and lets the
-    faster walk absorb a second fault that cancels it (docs/faults.md, "Session 11").
-    Returns the new anchor.
-    """
-    now = declared & (before < s.settle_steps) & (since >= s.settle_steps)
-    return jnp.where(now, est, anchor)
-
-
 def own_slots(F: int, nd: int) -> np.ndarray:
     """``(F, F + 1, 1 x nd)`` bool: slot ``j + 1`` is fault ``j``'s own hypothesis."""
     own = np.concatenate([np.zeros((F, 1), bool), np.eye(F, dtype=bool)], axis=1)

@@ -30,9 +30,9 @@ While a fault is declared, ``walk_settled``, ``post_gap``, ``post_floor_gap`` an
 change these rules, and ``walk_rel_newest`` and ``post_floor_mean`` (off by default;
 docs/faults.md, "Session 9") those for a second fault; ``post_floor_means`` (a floor per
 fault) and ``settle_move`` (a fault settles only once its estimate stops growing) refine
-them (off by default; docs/faults.md, "Session 10"), and ``settle_anchor`` (the growth
-test starts from the settled estimate) and ``retract_race`` (no challenger restarts while
-"D - f_j" leads) refine those (off by default; docs/faults.md, "Session 11").
+them (off by default; docs/faults.md, "Session 10"); ``retract_race`` (no challenger
+restarts while "D - f_j" leads) does for air in oil's onset under valve wear (off by
+default; docs/faults.md, "Session 11").
 An undeclared hypothesis' own magnitude is kept ``>= floor_mean`` (and its standard
 deviation ``>= floor_sd``), so that it means "a fault" and does not settle on nominal in
 fault-free data; ``floor_mean`` is below ``declare_min`` so that the bound never decides
@@ -232,8 +232,6 @@ class UIMMEstDiagnoser(Diagnoser):
         anchor = state.anchor
         if s.walk_settled and s.settle_move > 0:  # a fault still growing is not settled
             since, anchor = rules.moved(s, declared, est, est_sd, since, anchor)
-            if s.settle_anchor:  # settled now: growth is measured from here
-                anchor = rules.settled_anchor(s, declared, state.since, since, est, anchor)
             anchor = jnp.where(new_declared & ~declared, est, anchor)
         if s.walk_settled:  # since: a declared fault's age; a retracted one is due again
             since = jnp.where(new_declared & ~declared, 0, since)

@@ -103,10 +103,6 @@ class EstSettings(NamedTuple):
             floors hold only while every declared fault is at least this many steps old
             (its ``since``); before, ``post_floor_mean`` (0: off, always the per-fault
             floors; docs/faults.md, "Session 10, last").
-        settle_anchor: with ``settle_move``, a declared fault's anchor moves to model 0's
-            estimate when the fault settles (its age reaches ``settle_steps``), so that the
-            test measures growth from the settled value, not from a point left behind while
-            the estimate caught up with the end of a ramp (docs/faults.md, "Session 11").
         retract_race: while the most probable model is a retraction hypothesis
             ``D - f_j`` (not yet decided), no undeclared hypothesis restarts from the
             prior, for low probability or at its floor: near a cancellation (air in oil's
@@ -144,7 +140,6 @@ class EstSettings(NamedTuple):
     post_floor_means: tuple[float, ...] = ()
     settle_move: float = 0.0
     low_floor_age: int = 0
-    settle_anchor: bool = False
     retract_race: bool = False
 
 
