@@ -133,8 +133,9 @@ def test_settle_move_restarts_a_fault_s_age_only_when_its_estimate_grows():
 
 
 def test_retract_race_keeps_challengers_while_a_retraction_hypothesis_leads():
-    """``retract_race``: while "D - f_j" leads, a challenger of low probability keeps its
-    own estimate; while model 0 leads it restarts from the prior, as without the setting."""
+    """``retract_race``: while "D - f_j" leads, a challenger of low probability above its
+    floor keeps its own estimate, one at its floor restarts; while model 0 leads both
+    restart from the prior, as without the setting."""
     import jax.numpy as jnp
 
     from uimm_jax.engine.imm import IMMState
@@ -142,16 +143,19 @@ def test_retract_race_keeps_challengers_while_a_retraction_hypothesis_leads():
     diag = _diag()
     n, F, M = diag.dyn.n, diag.num_faults, diag.num_models
     declared = jnp.asarray([[True, True], [False, False], [False, False]])  # valve wear
+    s = diag.settings
     mean = np.zeros((n + F, M, 2))
     mean[n : n + F] = 0.3
-    mean[n + 2, 3] = 0.01  # air in oil's own hypothesis (slot 3), far below the prior
+    mean[n + 1, 2] = s.floor_mean  # leakage's own hypothesis (slot 2): at its floor
+    mean[n + 2, 3] = 2 * s.floor_mean  # air in oil's (slot 3): above it, below the prior
     cov = np.broadcast_to(np.eye(n + F)[..., None, None] * 1e-4, (n + F, n + F, M, 2)).copy()
     lp = np.log(np.full((M, 2), 1e-5))
     lp[1, 0] = lp[0, 1] = np.log(0.99)  # run 0: "D - valve wear" leads; run 1: D leads
     state = IMMState(jnp.asarray(mean), jnp.asarray(cov), jnp.asarray(lp))
     since = jnp.full((F, 2), 500, jnp.int32)
     use = diag.model_sets(declared)
-    s = diag.settings
-    for on, want in ((False, [s.prior_mean, s.prior_mean]), (True, [0.01, s.prior_mean])):
+    prior = [s.prior_mean, s.prior_mean]
+    for on, air in ((False, prior), (True, [2 * s.floor_mean, s.prior_mean])):
         st, _ = rules.reset_unused(s._replace(retract_race=on), n, state, use, declared, since)
-        np.testing.assert_allclose(np.asarray(st.mean)[n + 2, 3], want)
+        np.testing.assert_allclose(np.asarray(st.mean)[n + 2, 3], air)
+        np.testing.assert_allclose(np.asarray(st.mean)[n + 1, 2], prior)

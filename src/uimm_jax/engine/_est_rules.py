@@ -142,13 +142,14 @@ def reset_unused(s: EstSettings, n: int, st: IMMState, use, declared, since):
     floor_gap = s.floor_gap
     if s.post_floor_gap > 0:
         floor_gap = jnp.where(any_decl, s.post_floor_gap, s.floor_gap)
-    held = (own_mean <= floor_mean(s, declared, since)) & (since >= floor_gap)  # at floor
+    at_floor = own_mean <= floor_mean(s, declared, since)
+    held = at_floor & (since >= floor_gap)  # at floor
     if s.race_floor > 0:  # nor at the floor, in a race (docs/faults.md, "Ramps")
         race = jnp.any(lead_f & (own_mean < s.race_floor), axis=0)
         held = held & ~(race & ~any_decl if s.race_floor_first else race)
-    if s.retract_race:  # a retraction hypothesis leads: nobody restarts (Session 11)
+    if s.retract_race:  # "D - f_j" leads: no restart above the floor (Session 11)
         ret_lead = jnp.any((lead == hyp) & declared, axis=0)
-        low, held = low & ~ret_lead, held & ~ret_lead
+        low = low & ~(ret_lead & ~at_floor)
     live = ~low & ~held  # (F, *runs)
     restart = ~declared & ~live
     since = jnp.where(restart, 1, jnp.minimum(since + 1, gap_cap(s)))

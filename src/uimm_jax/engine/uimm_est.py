@@ -31,8 +31,8 @@ change these rules, and ``walk_rel_newest`` and ``post_floor_mean`` (off by defa
 docs/faults.md, "Session 9") those for a second fault; ``post_floor_means`` (a floor per
 fault) and ``settle_move`` (a fault settles only once its estimate stops growing) refine
 them (off by default; docs/faults.md, "Session 10"); ``retract_race`` (no challenger
-restarts while "D - f_j" leads) does for air in oil's onset under valve wear (off by
-default; docs/faults.md, "Session 11").
+above its floor restarts while "D - f_j" leads) is for air in oil's onset under valve
+wear (off by default; docs/faults.md, "Session 11").
 An undeclared hypothesis' own magnitude is kept ``>= floor_mean`` (and its standard
 deviation ``>= floor_sd``), so that it means "a fault" and does not settle on nominal in
 fault-free data; ``floor_mean`` is below ``declare_min`` so that the bound never decides

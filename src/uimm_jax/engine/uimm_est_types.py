@@ -104,8 +104,8 @@ class EstSettings(NamedTuple):
             (its ``since``); before, ``post_floor_mean`` (0: off, always the per-fault
             floors; docs/faults.md, "Session 10, last").
         retract_race: while the most probable model is a retraction hypothesis
-            ``D - f_j`` (not yet decided), no undeclared hypothesis restarts from the
-            prior, for low probability or at its floor: near a cancellation (air in oil's
+            ``D - f_j`` (not yet decided), an undeclared hypothesis above its floor does not
+            restart from the prior for low probability: near a cancellation (air in oil's
             onset under valve wear) "valve wear ended" and "air in oil appeared" explain
             the data alike, and a challenger restarted then loses the track of a second
             fault that is still small (docs/faults.md, "Session 11").
