@@ -194,6 +194,7 @@ def test_tangent_order_keeps_the_cache_and_nearly_the_derivatives():
 def test_augmented_structured_algebra_equals_the_full_products():
     # predict_cov uses F = [[G], [0, I]] and observe a constant H = [C, 0]: the results must
     # be those of the dense (n + F) x (n + F) algebra, entry for entry.
+    import jax
     import jax.numpy as jnp
 
     from uimm_jax.engine import _block as bk
@@ -208,18 +209,19 @@ def test_augmented_structured_algebra_equals_the_full_products():
     G = rng.standard_normal((n, N, 4))
     Q = np.diag(rng.uniform(0.1, 1.0, N))
     full = np.concatenate([G, np.broadcast_to(np.eye(N)[n:, :, None], (F, N, 4))], 0)
-    got = np.asarray(aug.predict_cov(jnp.asarray(G), jnp.asarray(P), jnp.asarray(Q)[..., None]))
-    want = np.asarray(kf_predict_cov(jnp.asarray(full), jnp.asarray(P), jnp.asarray(Q)[..., None]))
+    args = (jnp.asarray(P), jnp.asarray(Q)[..., None])  # compiled: op by op is ~180 compiles
+    got = np.asarray(jax.jit(aug.predict_cov)(jnp.asarray(G), *args))
+    want = np.asarray(jax.jit(kf_predict_cov)(jnp.asarray(full), *args))
     np.testing.assert_allclose(got, want, rtol=1e-13, atol=0)
     np.testing.assert_array_equal(got, np.swapaxes(got, 0, 1))
-    cache = aug.prepare(st.diagnoser.model_sets(jnp.zeros(F, bool)), jnp.ones((F, 4)))
+    cache = st.diagnoser.prepare(jnp.zeros(F, bool), jnp.float64)  # magnitudes at 1
     yp, H = aug.observe(cache, jnp.asarray(rng.standard_normal((N, 4))))
     assert isinstance(H, np.ndarray) and bk.selection(H) == (0, 1, 2)  # [I 0], no tracing
     x = jnp.asarray(rng.standard_normal((N, 4)))
     y = jnp.asarray(rng.standard_normal((3, 1)))
     R = jnp.asarray(np.diag([0.5, 1.0, 2.0]))[..., None]
-    sliced = kf_update(x, jnp.asarray(P), y, yp, H, R, 1e-150)
-    dense = kf_update(x, jnp.asarray(P), y, yp, jnp.asarray(H), R, 1e-150)  # traced: products
+    sliced = jax.jit(lambda *a: kf_update(*a[:4], H, *a[4:]))(x, jnp.asarray(P), y, yp, R, 1e-150)
+    dense = jax.jit(kf_update)(x, jnp.asarray(P), y, yp, jnp.asarray(H), R, 1e-150)  # products
     for a, b in zip(sliced[:5], dense[:5], strict=True):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-13, atol=1e-300)
 
