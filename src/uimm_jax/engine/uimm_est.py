@@ -344,8 +344,8 @@ def build_diagnoser(
         gate: optional chi-square innovation gate.
         settings: :class:`EstSettings` of ``"uimm-est"`` (default: the defaults); checked
             by :func:`~uimm_jax.engine.uimm_est_types.check_est_settings` (a field out of
-            its type or range is a ``ValueError`` naming it); its counts and walks are
-            given at ``steps_dt`` and used at ``dyn.dt``
+            its type or range is a ``ValueError`` naming it); its settings counted in
+            steps are given at ``steps_dt`` and used at ``dyn.dt``
             (:func:`~uimm_jax.engine.uimm_est_types.settings_at_dt`).
     """
     if method != UIMMEstDiagnoser.method:
