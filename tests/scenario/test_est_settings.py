@@ -21,6 +21,7 @@ from uimm_jax.engine.uimm_est_types import (
     est_setting_problem,
     est_settings,
     est_value_from_text,
+    settings_at_dt,
 )
 from uimm_jax.errors import ScenarioError
 from uimm_jax.scenario.parse import load_scenario, parse_scenario
@@ -151,6 +152,9 @@ def test_setup_from_a_file_builds_the_diagnoser_with_its_settings(tmp_path):
     setup = setup_scenario(load_scenario(path))
     assert isinstance(setup.diagnoser, UIMMEstDiagnoser)
     assert setup.diagnoser.settings == EstSettings(walk=2.5e-3, walk_rel_newest=True)
+    # the settings as given; the rules', at the plant's dt (1e-3 s: 10 times fewer samples)
+    assert setup.diagnoser.per_sample == settings_at_dt(setup.diagnoser.settings, 1e-3)
+    assert setup.diagnoser.per_sample.retract_hold == 20
     # another method (run --method uimm) takes no settings: a fixed-size diagnoser
     assert not hasattr(setup_scenario(load_scenario(path), "uimm").diagnoser, "settings")
 
@@ -179,3 +183,25 @@ def test_tuning_says_to_drop_the_table_from_its_fixed_size_copy():
     sc = parse_scenario(est_dict(A))
     with pytest.raises(ValueError, match=r'method = "uimm".*drop \[filter\.est\] from the copy'):
         tune.make_batch(sc, [tune.scenario_case(sc)], 1, seed=0)
+
+
+COUNTED = ("restart_gap", "floor_gap", "post_gap", "settle_steps", "post_floor_gap")
+COUNTED += ("retract_hold", "low_floor_age")
+
+
+def test_counted_settings_keep_their_meaning_in_seconds_at_another_dt():
+    s = EstSettings(floor_gap=3, retract_hold=1)
+    assert settings_at_dt(s, 1e-4) is s  # dt == steps_dt: the same numbers, bit for bit
+    off = s._replace(steps_dt=0.0)
+    assert settings_at_dt(off, 1e-3) is off  # 0: counts are the plant's samples
+    slow = settings_at_dt(s, 1e-3)  # sampled 10 times slower: 10 times fewer samples
+    assert (slow.settle_steps, slow.post_floor_gap, slow.retract_hold) == (300, 20, 1)
+    assert (slow.low_floor_age, slow.restart_gap, slow.floor_gap, slow.post_gap) == (800, 1, 1, 0)
+    assert slow._replace(**{k: getattr(s, k) for k in COUNTED}, steps_dt=1e-4) == s  # no other
+    assert slow.steps_dt == 1e-3 and settings_at_dt(slow, 1e-3) is slow
+    fast = settings_at_dt(s, 4e-5)  # 2.5 times faster: 3 * 2.5 = 7.5 rounds to 8
+    assert (fast.settle_steps, fast.floor_gap, fast.retract_hold) == (7500, 8, 3)
+    with pytest.raises(ValueError, match=r"settings\.steps_dt: .*dt is None.*steps_dt = 0"):
+        settings_at_dt(s, None)
+    with pytest.raises(ValueError, match=r"settings\.settle_steps: 3000 .*lower settle_steps"):
+        settings_at_dt(s, 1e-10)

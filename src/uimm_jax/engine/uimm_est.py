@@ -80,7 +80,13 @@ from uimm_jax.engine.decision import decide
 from uimm_jax.engine.imm import IMMParams, IMMState, imm_step
 from uimm_jax.engine.uimm import Diagnoser, DiagParams, _pick_model
 from uimm_jax.engine.uimm import build_diagnoser as _build_fixed
-from uimm_jax.engine.uimm_est_types import EstInfo, EstSettings, EstState, check_est_settings
+from uimm_jax.engine.uimm_est_types import (
+    EstInfo,
+    EstSettings,
+    EstState,
+    check_est_settings,
+    settings_at_dt,
+)
 
 __all__ = ["EstInfo", "EstSettings", "EstState", "UIMMEstDiagnoser", "build_diagnoser"]
 
@@ -100,6 +106,11 @@ class UIMMEstDiagnoser(Diagnoser):
     def num_models(self) -> int:
         """``F + 1``."""
         return self.num_faults + 1
+
+    @property
+    def per_sample(self) -> EstSettings:
+        """The settings the rules use: ``settings`` at the plant's ``dt`` (``settings_at_dt``)."""
+        return settings_at_dt(self.settings, getattr(self.dyn, "dt", None))
 
     @property
     def aug(self) -> AugmentedDynamics:
@@ -144,7 +155,7 @@ class UIMMEstDiagnoser(Diagnoser):
     def init(self, mean0, cov0, mode_probs0, runs: tuple[int, ...] = (), dtype=None) -> EstState:
         """Initial state: ``[mean0; prior_mean]``, ``blockdiag(cov0, prior_sd^2 I)``."""
         dtype = dtype or jnp.asarray(0.0).dtype
-        F, s = self.num_faults, self.settings
+        F, s = self.num_faults, self.per_sample
         n = np.asarray(mean0).shape[0]
         mean_a = np.concatenate([np.asarray(mean0, np.float64), np.full(F, s.prior_mean)])
         cov_a = np.zeros((n + F, n + F))
@@ -172,7 +183,7 @@ class UIMMEstDiagnoser(Diagnoser):
         with_cov: bool = True,
     ) -> tuple[EstState, EstInfo]:
         """One step: IMM cycle over ``[x; a]``, decisions, hand-over, re-centring."""
-        n, F, s = self.dyn.n, self.num_faults, self.settings
+        n, F, s = self.dyn.n, self.num_faults, self.per_sample
         declared = state.declared
         dtype = state.imm.mean.dtype
         imm0, since = rules.reset_unused(s, n, state.imm, state.cache.use, declared, state.since)
@@ -333,7 +344,9 @@ def build_diagnoser(
         gate: optional chi-square innovation gate.
         settings: :class:`EstSettings` of ``"uimm-est"`` (default: the defaults); checked
             by :func:`~uimm_jax.engine.uimm_est_types.check_est_settings` (a field out of
-            its type or range is a ``ValueError`` naming it).
+            its type or range is a ``ValueError`` naming it); its settings counted in
+            steps are given at ``steps_dt`` and used at ``dyn.dt``
+            (:func:`~uimm_jax.engine.uimm_est_types.settings_at_dt`).
     """
     if method != UIMMEstDiagnoser.method:
         if settings is not None:
@@ -354,4 +367,5 @@ def build_diagnoser(
             f"settings.post_floor_means: expected one floor per fault ({F}: "
             f"{', '.join(fixed.table.names)}), got {len(settings.post_floor_means)}"
         )
+    settings_at_dt(settings, getattr(fixed.dyn, "dt", None))  # converts (or says why not)
     return UIMMEstDiagnoser(fixed.dyn, fixed.table, fixed.gate, settings)

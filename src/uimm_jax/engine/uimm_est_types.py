@@ -27,6 +27,7 @@ __all__ = [
     "est_setting_problem",
     "est_settings",
     "est_value_from_text",
+    "settings_at_dt",
 ]
 
 
@@ -50,8 +51,17 @@ class EstSettings(NamedTuple):
     twice as slow (``retract_hold``).  ``declare_rel=0.15`` then lowers the 10 s ramps to 0,
     1, 0, 0, 0 (sim 1) and 3, 1, 0, 0, 0 (sim 2) and changes no other cell's false
     declarations, detection or isolation; first declarations come 0-12 ms later
-    (docs/faults.md, "Session 11: a first declaration only on a tight estimate").  The
-    settings counted in steps were measured at the actuator's ``dt`` = 1e-4 s.
+    (docs/faults.md, "Session 11: a first declaration only on a tight estimate").
+    **Settings counted in steps** (the gaps, ``settle_steps``, ``retract_hold``,
+    ``low_floor_age``) were measured on the actuator at ``dt`` = 1e-4 s and are given for
+    a plant sampled every ``steps_dt`` seconds (default 1e-4): on a plant sampled every
+    ``dt`` the diagnoser counts ``steps_dt / dt`` times as many samples
+    (:func:`settings_at_dt`), so that they keep their meaning in seconds (session 12; on
+    the user-plant test at ``dt`` = 1e-3 s a retraction takes 20 ms, not 200).  The
+    random walks (``walk``, ``walk_rel``, ``walk_settled``) stay per sample: scaled to keep
+    their variance per second they gave larger size errors at ``dt`` = 1e-3 and 5e-3 s
+    and slower retractions and a false declaration at 2e-5 s (docs/faults.md,
+    "Sampling time").
     **A per-fault setting has no default beyond "the same for every fault"**:
     ``post_floor_means`` is empty (``post_floor_mean``, 0.02, for every fault), because a
     tuple per fault cannot fit a plant with another fault count; the fault library that
@@ -134,6 +144,11 @@ class EstSettings(NamedTuple):
             estimate at least ``1 / declare_rel`` of its sd from nominal; 0: off): a
             look-alike that wins the race while the true fault is small is declared
             with a loose estimate (docs/faults.md, "Session 11"; default 0.15 since then).
+        steps_dt: seconds: the settings counted in steps are given for a plant sampled
+            every ``steps_dt`` (default 1e-4 s, the actuator's ``dt``, at which the
+            defaults were measured); at another sampling time ``dt`` they are converted
+            by :func:`settings_at_dt` (0: off, they count the plant's samples whatever
+            its ``dt``; session 12).  The walks are per sample either way.
     """
 
     walk: float = 1e-3
@@ -166,6 +181,7 @@ class EstSettings(NamedTuple):
     settle_move: float = 10.0
     low_floor_age: int = 8000
     declare_rel: float = 0.15
+    steps_dt: float = 1e-4
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -199,6 +215,7 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "settle_move": (0.0, False, "standard deviations; 0: off"),
     "low_floor_age": (0, False, "steps; 0: off"),
     "declare_rel": (0.0, False, "a fraction of the estimate; 0: off"),
+    "steps_dt": (0.0, False, "seconds; 0: off, counts are samples"),
 }
 _HIGH = {"restart_below": 1.0, "tangent_order": 12}
 
@@ -323,6 +340,56 @@ def est_value_from_text(name: str, text: str) -> Any:
         except ValueError:
             pass
     return text
+
+
+# -- sampling time: the one place where the step counts meet the plant's dt ------------
+
+_COUNTED = ("restart_gap", "floor_gap", "post_gap", "settle_steps", "post_floor_gap")
+_COUNTED += ("retract_hold", "low_floor_age")
+
+
+def settings_at_dt(settings: EstSettings, dt: Any) -> EstSettings:
+    """``settings`` (given at ``steps_dt``) as the rules use them at sampling time ``dt``.
+
+    Each setting counted in steps (``restart_gap``, ``floor_gap``, ``post_gap``,
+    ``settle_steps``, ``post_floor_gap``, ``retract_hold``, ``low_floor_age``) becomes
+    ``round(count * steps_dt / dt)`` samples (halves up), at least 1 unless it was 0
+    (off), and ``steps_dt`` becomes ``dt`` (the result is its own conversion at ``dt``).
+    With ``steps_dt == dt`` or ``steps_dt = 0`` it returns ``settings`` itself: the same
+    numbers, bit for bit.  Not converted: the random walks (per sample; scaling them by
+    ``sqrt(dt / steps_dt)`` was measured worse, :class:`EstSettings`) and the decision's
+    ``hold`` (a scenario setting, in samples, that the user sets with ``dt``).
+
+    Args:
+        settings: valid :class:`EstSettings`.
+        dt: the plant's sampling time in seconds (``dyn.dt``; ``None`` if it has none).
+
+    Raises:
+        ValueError: ``dt`` is not a finite number > 0 while ``steps_dt`` is set, or a
+            count would exceed ``2^31 - 1`` samples; the message names the fix.
+    """
+    s = settings
+    if not s.steps_dt or (is_number(dt) and float(dt) == s.steps_dt):
+        return s
+    if not (is_number(dt) and math.isfinite(dt) and dt > 0):
+        raise ValueError(
+            f"settings.steps_dt: the settings counted in steps are given at steps_dt = "
+            f"{s.steps_dt!r} s, but the plant's sampling time dt is {dt!r} (the dynamics "
+            f"need a finite dt > 0 in seconds); give the dynamics its dt, or set "
+            f"steps_dt = 0 to count the plant's samples as they are"
+        )
+    ratio = s.steps_dt / float(dt)
+    counts = {}
+    for name in _COUNTED:
+        given = getattr(s, name)
+        counts[name] = 0 if given == 0 else max(1, math.floor(given * ratio + 0.5))
+        if counts[name] > MAX_INT32:
+            raise ValueError(
+                f"settings.{name}: {given} steps at steps_dt = {s.steps_dt!r} s are "
+                f"{counts[name]} samples at dt = {dt!r} s, more than 2^31 - 1; "
+                f"lower {name} or raise dt"
+            )
+    return s._replace(**counts, steps_dt=float(dt))
 
 
 class EstState(NamedTuple):

@@ -538,8 +538,8 @@ def summarize(
     decl = metrics.declaration_list(decl_step, names, dt)
     is_false = [bool(false_mask[names.index(d["fault"])]) for d in decl]
     hold = int(sc.filter.decision.hold)
-    if isinstance(diag, UIMMEstDiagnoser) and diag.settings.retract_hold:
-        hold = int(diag.settings.retract_hold)  # the samples its retraction rule counts
+    if isinstance(diag, UIMMEstDiagnoser) and diag.per_sample.retract_hold:
+        hold = int(diag.per_sample.retract_hold)  # the samples its retraction rule counts
     changes = decision_changes(outputs, truth_codes, names, dt, hold)
     if "declarations" in changes:  # a diagnoser that retracts: every switch on counts
         decl = changes["declarations"]
