@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import re
 import tomllib
+import warnings
 from pathlib import Path
 
 import pytest
@@ -23,7 +24,7 @@ from uimm_jax.engine.uimm_est_types import (
     est_value_from_text,
     settings_at_dt,
 )
-from uimm_jax.errors import ScenarioError
+from uimm_jax.errors import ScenarioError, UIMMWarning
 from uimm_jax.scenario.parse import load_scenario, parse_scenario
 from uimm_jax.scenario.write import dump_scenario, scenario_to_toml
 
@@ -157,6 +158,15 @@ def test_setup_from_a_file_builds_the_diagnoser_with_its_settings(tmp_path):
     assert setup.diagnoser.per_sample.retract_hold == 20
     # another method (run --method uimm) takes no settings: a fixed-size diagnoser
     assert not hasattr(setup_scenario(load_scenario(path), "uimm").diagnoser, "settings")
+    # a count the user set, read at the default steps_dt and converted: a warning says so
+    path = dump_scenario(est_dict({"retract_hold": 20}), tmp_path / "h.toml")
+    with pytest.warns(UIMMWarning, match=r"steps_dt: .*retract_hold 20 -> 2 samples.*0\.001"):
+        assert setup_scenario(load_scenario(path)).diagnoser.per_sample.retract_hold == 2
+    # given in the plant's own samples: no conversion, no warning
+    path = dump_scenario(est_dict({"retract_hold": 20, "steps_dt": 1e-3}), tmp_path / "o.toml")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UIMMWarning)
+        assert setup_scenario(load_scenario(path)).diagnoser.per_sample.retract_hold == 20
 
 
 def test_docs_table_lists_every_setting_with_its_default():

@@ -66,6 +66,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import warnings
 from typing import Any, ClassVar, final
 
 import jax
@@ -81,12 +82,14 @@ from uimm_jax.engine.imm import IMMParams, IMMState, imm_step
 from uimm_jax.engine.uimm import Diagnoser, DiagParams, _pick_model
 from uimm_jax.engine.uimm import build_diagnoser as _build_fixed
 from uimm_jax.engine.uimm_est_types import (
+    COUNTED_SETTINGS,
     EstInfo,
     EstSettings,
     EstState,
     check_est_settings,
     settings_at_dt,
 )
+from uimm_jax.errors import UIMMWarning
 
 __all__ = ["EstInfo", "EstSettings", "EstState", "UIMMEstDiagnoser", "build_diagnoser"]
 
@@ -367,5 +370,30 @@ def build_diagnoser(
             f"settings.post_floor_means: expected one floor per fault ({F}: "
             f"{', '.join(fixed.table.names)}), got {len(settings.post_floor_means)}"
         )
-    settings_at_dt(settings, getattr(fixed.dyn, "dt", None))  # converts (or says why not)
+    _warn_converted(settings, settings_at_dt(settings, getattr(fixed.dyn, "dt", None)))
     return UIMMEstDiagnoser(fixed.dyn, fixed.table, fixed.gate, settings)
+
+
+def _warn_converted(given: EstSettings, used: EstSettings) -> None:
+    """Warn when counts a user set (not the defaults) are converted at the default ``steps_dt``.
+
+    A count that differs from its default was written by the user, perhaps in the plant's
+    own samples; at the default ``steps_dt`` it is read as steps at 1e-4 s and converted.
+    """
+    default = EstSettings()
+    if given.steps_dt != default.steps_dt or used is given:
+        return
+    moved = [
+        f"{k} {getattr(given, k)} -> {getattr(used, k)}"
+        for k in COUNTED_SETTINGS
+        if getattr(given, k) != getattr(default, k) and getattr(given, k) != getattr(used, k)
+    ]
+    if moved:
+        warnings.warn(
+            f"settings.steps_dt: the settings counted in steps are read at steps_dt = "
+            f"{given.steps_dt} s (the default) and converted to the plant's dt = "
+            f"{used.steps_dt} s: {', '.join(moved)} samples; if you gave them in this "
+            f"plant's samples, set steps_dt = {used.steps_dt} (or 0)",
+            UIMMWarning,
+            stacklevel=3,
+        )

@@ -20,6 +20,7 @@ from uimm_jax.engine.augmented import AugCache
 from uimm_jax.engine.imm import IMMState, StepInfo
 
 __all__ = [
+    "COUNTED_SETTINGS",
     "EstInfo",
     "EstSettings",
     "EstState",
@@ -344,8 +345,9 @@ def est_value_from_text(name: str, text: str) -> Any:
 
 # -- sampling time: the one place where the step counts meet the plant's dt ------------
 
-_COUNTED = ("restart_gap", "floor_gap", "post_gap", "settle_steps", "post_floor_gap")
-_COUNTED += ("retract_hold", "low_floor_age")
+COUNTED_SETTINGS = ("restart_gap", "floor_gap", "post_gap", "settle_steps", "post_floor_gap")
+COUNTED_SETTINGS += ("retract_hold", "low_floor_age")
+"""The settings counted in steps, which :func:`settings_at_dt` converts."""
 
 
 def settings_at_dt(settings: EstSettings, dt: Any) -> EstSettings:
@@ -380,7 +382,7 @@ def settings_at_dt(settings: EstSettings, dt: Any) -> EstSettings:
         )
     ratio = s.steps_dt / float(dt)
     counts = {}
-    for name in _COUNTED:
+    for name in COUNTED_SETTINGS:
         given = getattr(s, name)
         counts[name] = 0 if given == 0 else max(1, math.floor(given * ratio + 0.5))
         if counts[name] > MAX_INT32:
