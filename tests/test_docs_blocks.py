@@ -159,8 +159,9 @@ BLOCKS = (
                        ("--runs 200", "--runs 8")),
           creates=("out/sweep_paper/results.json", "out/sweep_paper/runs.csv",
                    "out/sim2_magnitudes/results.csv")),
+    # runs=16: batches of 48 runs again, the kernels montecarlo.md:9 compiled.
     Entry("docs/montecarlo.md", "write_sweep_outputs(res, \"out/my_sweep\")", "run",
-          subs=(("runs=100", "runs=8"),), creates=("out/my_sweep/results.json",)),
+          subs=(("runs=100", "runs=16"),), creates=("out/my_sweep/results.json",)),
     Entry("docs/montecarlo.md", "name = \"sim1\"", "toml",
           merge_into="scenarios/paper_sim1_tuned.toml"),
     Entry("docs/montecarlo.md", "# by hand: process 0 listens", "parse",
