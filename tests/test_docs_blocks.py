@@ -17,8 +17,8 @@ Each block is one test (``test_block[docs/montecarlo.md:15]``), handled by the o
   - ``subs``: exact text replacements made before running, for blocks whose run counts or
     iterations would take minutes (``--runs 200`` -> ``--runs 8``).  Each must match.
     The sweeps of montecarlo.md and tuning.md's evaluation run batches of 48 runs (3
-    cells x 16 runs, or 6 x 8), so that they share the compiled uimm and imm kernels (one
-    compile each for the file, through the shared cache below).
+    cells x 16 runs, or 5 x 8 padded to 48), so that they share the compiled uimm and imm
+    kernels (one compile each for the file, through the shared cache below).
 
   ``drop`` removes leading ``&&``-steps of a one-line command (the venv and ``pip install``
   of the Quick start: the suite runs inside the installed environment).
