@@ -95,9 +95,12 @@ def small():
     config = tune.TuneConfig(tune_noise=True, segment=STEPS, checkpoint=False)
     problem, batch = _problem(sc, config)
     P = np.array([[0.9, 0.06, 0.04], [0.1, 0.85, 0.05], [0.05, 0.05, 0.9]])
-    # A hold away from rounding boundaries, noise scales off their defaults.
+    # A hold away from rounding boundaries, noise scales off their defaults.  Strongly
+    # typed float64 (a bare jnp.asarray(0.1) is weakly typed), as the finite-difference
+    # points are: else each compiled gradient is compiled twice.
     raw = tune.init_params(P, 0.9, 3, config)
-    raw = raw._replace(log_q_scale=jnp.asarray(0.1), log_r_scale=jnp.asarray(-0.2))
+    raw = raw._replace(log_q_scale=jnp.asarray(0.1, jnp.float64),
+                       log_r_scale=jnp.asarray(-0.2, jnp.float64))  # fmt: skip
     return sc, config, problem, batch, raw
 
 
@@ -248,7 +251,8 @@ def test_gradient_matches_central_differences_actuator():
     config = tune.TuneConfig(tune_noise=True, segment=STEPS, checkpoint=False)
     problem, batch = _problem(sc, config)
     raw = tune.init_params(sc.transition_matrix(), 0.9, 3, config)
-    raw = raw._replace(log_q_scale=jnp.asarray(0.1), log_r_scale=jnp.asarray(-0.2))
+    raw = raw._replace(log_q_scale=jnp.asarray(0.1, jnp.float64),
+                       log_r_scale=jnp.asarray(-0.2, jnp.float64))  # fmt: skip
     check_gradient(config, problem, batch, raw, 16 + 4)
     check_gradient(dataclasses.replace(config, couple=True), problem, batch, raw, 16 + 4)
 
