@@ -258,9 +258,11 @@ def test_uimm_est_sweep_interrupted_then_resumed_equals_uninterrupted(tmp_path):
 
 
 def test_uimm_est_sweep_outcomes_do_not_depend_on_the_batch_size():
-    # A uimm-est run's numbers depend only on its own key: batches of 16 and of 3 runs
-    # give the same numbers, bit for bit (uimm-est re-centres a run's expansion when that
-    # run needs it, not when any run of its batch does).
+    # A uimm-est run's numbers depend only on its own key: the 20 runs in 2 batches of 10
+    # (batch=16) and in 7 batches of at most 3 (batch=3), each padded to 16 lanes, so with
+    # other batch-mates and other rebuild groups, give the same numbers, bit for bit
+    # (uimm-est re-centres a run's expansion when that run needs it, not when any run of
+    # its batch does).  Both use the one compiled 16-run kernel.
     whole = mc.run_sweep(small_scenario(EST_SWEEP))
     small = mc.run_sweep(small_scenario(dict(EST_SWEEP, batch=3)))
     for name in ARRAYS:
