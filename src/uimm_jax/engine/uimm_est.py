@@ -160,6 +160,7 @@ class UIMMEstDiagnoser(Diagnoser):
             jnp.zeros((F,) + tuple(runs), jnp.int32),
             jnp.full((F,) + tuple(runs), rules.gap_cap(s), jnp.int32),
             jnp.zeros((F,) + tuple(runs), dtype),
+            jnp.zeros(tuple(runs), jnp.int32),
         )
 
     def step(
@@ -175,7 +176,12 @@ class UIMMEstDiagnoser(Diagnoser):
         n, F, s = self.dyn.n, self.num_faults, self.settings
         declared = state.declared
         dtype = state.imm.mean.dtype
-        imm0, since = rules.reset_unused(s, n, state.imm, state.cache.use, declared, state.since)
+        keep, chal = None, state.chal
+        if s.retract_keep:  # the challenger of a spell of "D - f_j" does not restart
+            keep, chal = rules.challenger(declared, state.imm.log_mode_probs, chal)
+        imm0, since = rules.reset_unused(
+            s, n, state.imm, state.cache.use, declared, state.since, keep
+        )
         if s.walk_rel:  # a declared fault's walk grows with its size
             imm0 = rules.walk_rel(s, n, imm0, declared, since)
         q_aug = jnp.zeros((n + F, n + F), dtype).at[:n, :n].set(params.imm.Q)
@@ -247,6 +253,7 @@ class UIMMEstDiagnoser(Diagnoser):
             low_len,
             since,
             anchor,
+            chal,
         )
         recognised = jnp.where(any_ret, new_declared, dec.candidate_set)
         step_info = info._replace(

@@ -134,6 +134,12 @@ class EstSettings(NamedTuple):
             estimate at least ``1 / declare_rel`` of its sd from nominal; 0: off): a
             look-alike that wins the race while the true fault is small is declared
             with a loose estimate (docs/faults.md, "Session 11"; default 0.15 since then).
+        retract_keep: while the most probable model is a retraction hypothesis
+            "D - f_j", the undeclared hypothesis that led just before it (``EstState.chal``)
+            does not restart from the prior when it is held at its floor (it still does for
+            low probability): a new fault that cancels a declared one (air in oil and valve
+            wear in the input gain) gives "D - f_j" the lead while the new fault is still
+            small (see ``_est_rules.challenger``; docs/faults.md, "Session 12").
     """
 
     walk: float = 1e-3
@@ -166,6 +172,7 @@ class EstSettings(NamedTuple):
     settle_move: float = 10.0
     low_floor_age: int = 8000
     declare_rel: float = 0.15
+    retract_keep: bool = False
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -342,6 +349,9 @@ class EstState(NamedTuple):
             declaration; with ``settle_move`` also on a move away from nominal).
         anchor: ``(F, *runs)`` model 0's estimate of each declared fault at its last move
             (``settle_move``; zeros while it is off).
+        chal: ``(*runs,)`` int32, ``j + 1`` for the undeclared hypothesis of fault ``j`` that
+            led last before a retraction hypothesis took the lead, 0 for none
+            (``retract_keep``; zeros while it is off).
     """
 
     imm: IMMState
@@ -352,6 +362,7 @@ class EstState(NamedTuple):
     low_len: jax.Array
     since: jax.Array
     anchor: jax.Array
+    chal: jax.Array
 
 
 class EstInfo(NamedTuple):
