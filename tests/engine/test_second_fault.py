@@ -177,26 +177,3 @@ def test_retract_keep_keeps_only_the_challenger_that_led_before_the_retraction_h
         got, _ = reset(state, use, declared, since, keep)
         np.testing.assert_allclose(np.asarray(got.mean[n + 2, :, 0]), air)  # every model
         np.testing.assert_allclose(np.asarray(got.mean[n + 1, :, 0]), s.prior_mean)  # leakage
-
-
-def test_settle_sd_measures_growth_in_the_sd_of_the_anchor_s_time_too():
-    """``settle_sd`` (session 12): a settled estimate whose sd has shrunk since its anchor
-    was set (sim 2's 10 s ramp at 0.3, run 47: anchor 0.2866 at sd 0.0018, then 0.3020 at
-    sd 0.00153) is not called growing; a move beyond the larger sd still is, and stores
-    the sd of its time."""
-    import jax.numpy as jnp
-
-    from uimm_jax.engine._est_rules import moved
-    from uimm_jax.engine.uimm_est import EstSettings
-
-    s = EstSettings(settle_move=10.0, settle_sd=True)
-    declared = jnp.asarray([[True, True]])
-    anchor, anchor_sd = jnp.asarray([[0.2866, 0.2866]]), jnp.asarray([[0.0018, 0.0018]])
-    est, sd = jnp.asarray([[0.3020, 0.3050]]), jnp.full((1, 2), 0.00153)
-    since = jnp.full((1, 2), 5000, jnp.int32)
-    old_since, _ = moved(s, declared, est, sd, since, anchor)  # the current sd alone
-    np.testing.assert_array_equal(old_since, [[0, 0]])
-    new_since, new_anchor, new_sd = moved(s, declared, est, sd, since, anchor, anchor_sd)
-    np.testing.assert_array_equal(new_since, [[5000, 0]])
-    np.testing.assert_allclose(new_anchor, [[0.2866, 0.3050]])
-    np.testing.assert_allclose(new_sd, [[0.0018, 0.00153]])

@@ -64,7 +64,7 @@ def newest(declared: jax.Array, since: jax.Array) -> jax.Array:
     return declared & (age == jnp.min(age, axis=0))
 
 
-def moved(s: EstSettings, declared, est, est_sd, since, anchor, anchor_sd=None):
+def moved(s: EstSettings, declared, est, est_sd, since, anchor):
     """``settle_move``: a declared fault's age restarts when its estimate grows.
 
     A move of more than ``settle_move`` standard deviations from ``anchor`` re-anchors the
@@ -72,17 +72,11 @@ def moved(s: EstSettings, declared, est, est_sd, since, anchor, anchor_sd=None):
     so that ``walk_settled`` acts only once the fault has stopped growing.  A move
     towards nominal does not: a settled estimate pulled down by a new fault that cancels
     it (valve wear and air in oil in the input gain) must stay settled (docs/faults.md,
-    "Session 10").  With ``anchor_sd`` (``settle_sd``) the move is measured in the larger
-    of ``est_sd`` and the sd at the last move: an anchor set while the estimate still
-    lagged a ramp's end is otherwise crossed by noise once the settled sd has shrunk
-    (docs/faults.md, "Session 12").  Returns the new ``since`` and ``anchor`` (with
-    ``anchor_sd``: and the new ``anchor_sd``).
+    "Session 10").  Returns the new ``since`` and ``anchor``.
     """
-    sd = est_sd if anchor_sd is None else jnp.maximum(est_sd, anchor_sd)
-    far = declared & (jnp.abs(est - anchor) > s.settle_move * sd)
+    far = declared & (jnp.abs(est - anchor) > s.settle_move * est_sd)
     grew = far & (jnp.abs(est) > jnp.abs(anchor))
-    out = jnp.where(grew, 0, since), jnp.where(far, est, anchor)
-    return out if anchor_sd is None else (*out, jnp.where(far, est_sd, anchor_sd))
+    return jnp.where(grew, 0, since), jnp.where(far, est, anchor)
 
 
 def challenger(declared, log_mode_probs, chal):

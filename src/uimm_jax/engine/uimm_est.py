@@ -161,7 +161,6 @@ class UIMMEstDiagnoser(Diagnoser):
             jnp.full((F,) + tuple(runs), rules.gap_cap(s), jnp.int32),
             jnp.zeros((F,) + tuple(runs), dtype),
             jnp.zeros(tuple(runs), jnp.int32),
-            jnp.zeros((F,) + tuple(runs), dtype),
         )
 
     def step(
@@ -238,15 +237,10 @@ class UIMMEstDiagnoser(Diagnoser):
         new_declared = jnp.where(retract, False, dec.declared)
         imm_state, cache = self._handover(imm_state, state.cache, winner, changed, new_declared)
         imm_state = rules.reopen(s, n, imm_state, new_declared & ~declared)
-        anchor, anchor_sd = state.anchor, state.anchor_sd
+        anchor = state.anchor
         if s.walk_settled and s.settle_move > 0:  # a fault still growing is not settled
-            moves = rules.moved(
-                s, declared, est, est_sd, since, anchor, anchor_sd if s.settle_sd else None
-            )
-            since, anchor = moves[:2]
+            since, anchor = rules.moved(s, declared, est, est_sd, since, anchor)
             anchor = jnp.where(new_declared & ~declared, est, anchor)
-            if s.settle_sd:  # at a declaration: the current sd alone
-                anchor_sd = jnp.where(new_declared & ~declared, 0.0, moves[2])
         if s.walk_settled:  # since: a declared fault's age; a retracted one is due again
             since = jnp.where(new_declared & ~declared, 0, since)
             since = jnp.where(retract, rules.gap_cap(s), since).astype(jnp.int32)
@@ -260,7 +254,6 @@ class UIMMEstDiagnoser(Diagnoser):
             since,
             anchor,
             chal,
-            anchor_sd,
         )
         recognised = jnp.where(any_ret, new_declared, dec.candidate_set)
         step_info = info._replace(

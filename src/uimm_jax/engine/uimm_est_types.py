@@ -140,11 +140,6 @@ class EstSettings(NamedTuple):
             low probability): a new fault that cancels a declared one (air in oil and valve
             wear in the input gain) gives "D - f_j" the lead while the new fault is still
             small (see ``_est_rules.challenger``; docs/faults.md, "Session 12").
-        settle_sd: with ``settle_move``, the growth test measures a move in the larger of
-            the estimate's sd now and its sd when the anchor was last moved
-            (``EstState.anchor_sd``; at a declaration the current sd alone), so that a
-            settled estimate whose sd shrinks is not called growing by noise (see
-            ``_est_rules.moved``; docs/faults.md, "Session 12").
     """
 
     walk: float = 1e-3
@@ -178,7 +173,6 @@ class EstSettings(NamedTuple):
     low_floor_age: int = 8000
     declare_rel: float = 0.15
     retract_keep: bool = False
-    settle_sd: bool = False
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -358,8 +352,6 @@ class EstState(NamedTuple):
         chal: ``(*runs,)`` int32, ``j + 1`` for the undeclared hypothesis of fault ``j`` that
             led last before a retraction hypothesis took the lead, 0 for none
             (``retract_keep``; zeros while it is off).
-        anchor_sd: ``(F, *runs)`` model 0's sd of each declared fault's estimate at its last
-            move (``settle_sd``; zeros while it is off, and after a declaration).
     """
 
     imm: IMMState
@@ -371,7 +363,6 @@ class EstState(NamedTuple):
     since: jax.Array
     anchor: jax.Array
     chal: jax.Array
-    anchor_sd: jax.Array
 
 
 class EstInfo(NamedTuple):
