@@ -134,3 +134,46 @@ def test_settle_move_restarts_a_fault_s_age_only_when_its_estimate_grows():
     new_since, new_anchor = moved(s, declared, est, sd, since, anchor)
     np.testing.assert_array_equal(new_since, [[0, 150, 150, 150]])
     np.testing.assert_allclose(new_anchor, [[0.6, 0.4, 0.5, 0.5]])
+
+
+def test_retract_keep_keeps_only_the_challenger_that_led_before_the_retraction_hypothesis():
+    """``retract_keep`` (session 12): while "D - f_j" leads, the undeclared hypothesis that
+    led just before it does not restart at its floor; the others do, and so does it once
+    model 0 has led in between.  A restart for low probability is left alone."""
+    import functools
+
+    import jax
+    import jax.numpy as jnp
+
+    from uimm_jax.engine.imm import IMMState
+
+    diag = _diag()
+    n, F, M = diag.dyn.n, diag.num_faults, diag.num_models
+    declared = jnp.asarray([[True], [False], [False]])  # valve wear declared (one run)
+    chal = jnp.zeros((1,), jnp.int32)
+    # leaders in turn: air in oil's hypothesis (slot 3), "D - valve wear" (slot 1), model 0
+    # then slot 1 again, leakage's hypothesis (slot 2) then slot 1
+    wants = [(3, 3, []), (1, 3, [2]), (1, 3, [2]), (0, 0, []), (1, 0, []), (2, 2, []), (1, 2, [1])]
+    challenger = jax.jit(rules.challenger)  # one compilation, not one per eager operation
+    for lead, want_chal, want_keep in wants:
+        log_mu = np.log(np.where(np.arange(M) == lead, 0.97, 0.01))[:, None]
+        keep, chal = challenger(declared, log_mu, chal)
+        assert int(chal[0]) == want_chal
+        np.testing.assert_array_equal(np.nonzero(np.asarray(keep[:, 0]))[0], want_keep)
+    # reset_unused: air in oil's hypothesis at its floor, leakage's at low probability:
+    # the kept air in oil keeps its estimate, leakage restarts from the prior either way
+    s = diag.settings._replace(retract_keep=True, post_floor_means=(), post_floor_mean=0.02)
+    mean = np.zeros((n + F, M, 1))
+    mean[n, :, 0] = 0.3  # valve wear's estimate in every model
+    mean[n + 1, 2, 0], mean[n + 2, 3, 0] = 0.2, 0.02  # leakage's and air in oil's own
+    cov = np.broadcast_to(np.eye(n + F)[..., None, None] * 1e-4, (n + F, n + F, M, 1)).copy()
+    log_mu = jnp.log(jnp.asarray([[0.01], [0.98], [1e-5], [0.01]]))
+    state = IMMState(jnp.asarray(mean), jnp.asarray(cov), log_mu)
+    use = diag.model_sets(declared)
+    since = jnp.full((F, 1), 1000, jnp.int32)
+    reset = jax.jit(functools.partial(rules.reset_unused, s, n))
+    for kept, air in ((True, 0.02), (False, s.prior_mean)):
+        keep = jnp.asarray([[False], [False], [kept]])
+        got, _ = reset(state, use, declared, since, keep)
+        np.testing.assert_allclose(np.asarray(got.mean[n + 2, :, 0]), air)  # every model
+        np.testing.assert_allclose(np.asarray(got.mean[n + 1, :, 0]), s.prior_mean)  # leakage

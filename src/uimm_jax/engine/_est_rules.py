@@ -79,6 +79,31 @@ def moved(s: EstSettings, declared, est, est_sd, since, anchor):
     return jnp.where(grew, 0, since), jnp.where(far, est, anchor)
 
 
+def challenger(declared, log_mode_probs, chal):
+    """``retract_keep``: the challenger kept over a spell of a retraction hypothesis.
+
+    ``chal`` ``(*runs,)`` is ``j + 1`` for the undeclared hypothesis "D + f_j" that led
+    last, 0 once model 0 leads, and is left as it is while a retraction hypothesis
+    "D - f_i" leads.  A new fault that cancels a declared one (air in oil and valve wear
+    in the input gain, at about 0.01 of air in oil for 0.3 of valve wear) gives "D - f_i"
+    the lead while the new fault is small; its challenger, which led just before, then
+    falls to its floor and would restart from the prior, which leaves the look-alike
+    (leakage) to win the next race (docs/faults.md, "Session 12").  Only the restart at
+    the floor is held back (:func:`reset_unused`): after an abrupt second fault the
+    challenger that led lags far behind the fault, and its restart for low probability
+    is what lets it catch up.  Returns ``keep`` ``(F, *runs)``, the hypothesis that must
+    not restart at its floor now, and the new ``chal``.
+    """
+    F = declared.shape[0]
+    lead = jnp.argmax(log_mode_probs, axis=0).astype(jnp.int32)  # (*runs,)
+    hyp = np.arange(1, F + 1).reshape((F,) + (1,) * (declared.ndim - 1))
+    leads = lead == hyp  # (F, *runs)
+    spell = jnp.any(leads & declared, axis=0)  # a retraction hypothesis leads
+    chal = jnp.where(spell, chal, jnp.where(jnp.any(leads & ~declared, axis=0), lead, 0))
+    keep = spell & (chal == hyp) & ~declared
+    return keep, chal.astype(jnp.int32)
+
+
 def own_slots(F: int, nd: int) -> np.ndarray:
     """``(F, F + 1, 1 x nd)`` bool: slot ``j + 1`` is fault ``j``'s own hypothesis."""
     own = np.concatenate([np.zeros((F, 1), bool), np.eye(F, dtype=bool)], axis=1)
@@ -104,7 +129,7 @@ def slot_of(declared: jax.Array) -> jax.Array:
     return jnp.where(declared, 0, own)
 
 
-def reset_unused(s: EstSettings, n: int, st: IMMState, use, declared, since):
+def reset_unused(s: EstSettings, n: int, st: IMMState, use, declared, since, keep=None):
     """Magnitudes a model does not use: to the bank's belief about them, uncorrelated.
 
     For a declared fault that is model 0's current estimate (so that mixing with the
@@ -136,7 +161,8 @@ def reset_unused(s: EstSettings, n: int, st: IMMState, use, declared, since):
     fault sits for seconds near the floor, and a hypothesis that restarts from the
     prior whenever its estimate touches the floor never gathers the evidence to beat
     a look-alike whose estimate has grown 2-4x the truth (docs/faults.md, "Ramps").
-    Returns the state and the new ``since``.
+    A hypothesis in ``keep`` ``(F, *runs)`` (``retract_keep``, :func:`challenger`) does not
+    restart at its floor.  Returns the state and the new ``since``.
     """
     F = declared.shape[0]
     var_all = mag_var(st.cov, n)
@@ -163,6 +189,8 @@ def reset_unused(s: EstSettings, n: int, st: IMMState, use, declared, since):
     if s.race_floor > 0:  # nor at the floor, in a race (docs/faults.md, "Ramps")
         race = jnp.any(lead_f & (own_mean < s.race_floor), axis=0)
         held = held & ~(race & ~any_decl if s.race_floor_first else race)
+    if keep is not None:
+        held = held & ~keep
     live = ~low & ~held  # (F, *runs)
     restart = ~declared & ~live
     since = jnp.where(restart, 1, jnp.minimum(since + 1, gap_cap(s)))

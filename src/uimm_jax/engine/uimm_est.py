@@ -30,7 +30,9 @@ While a fault is declared, ``walk_settled``, ``post_gap``, ``post_floor_gap`` an
 and ``walk_rel_newest`` and ``post_floor_mean`` (docs/faults.md, "Session 9") those for a
 second fault; ``post_floor_means`` (a floor per fault, from ``low_floor_age`` steps on)
 and ``settle_move`` (a fault settles only once its estimate stops growing) refine them
-(docs/faults.md, "Session 10").  Since session 11 the defaults are the settings "S10a"
+(docs/faults.md, "Session 10"); ``retract_keep`` spares the challenger that led before a
+retraction hypothesis took the lead its restart at the floor (docs/faults.md, "Session
+12").  Since session 11 the defaults are the settings "S10a"
 of docs/faults.md (all of these on but ``post_gap``; ``post_floor_means`` is per fault,
 so it is empty by default and set by the actuator's scenario files; :class:`EstSettings`).
 An undeclared hypothesis' own magnitude is kept ``>= floor_mean`` (and its standard
@@ -174,6 +176,7 @@ class UIMMEstDiagnoser(Diagnoser):
             jnp.zeros((F,) + tuple(runs), jnp.int32),
             jnp.full((F,) + tuple(runs), rules.gap_cap(s), jnp.int32),
             jnp.zeros((F,) + tuple(runs), dtype),
+            jnp.zeros(tuple(runs), jnp.int32),
         )
 
     def step(
@@ -189,7 +192,12 @@ class UIMMEstDiagnoser(Diagnoser):
         n, F, s = self.dyn.n, self.num_faults, self.per_sample
         declared = state.declared
         dtype = state.imm.mean.dtype
-        imm0, since = rules.reset_unused(s, n, state.imm, state.cache.use, declared, state.since)
+        keep, chal = None, state.chal
+        if s.retract_keep:  # the challenger of a spell of "D - f_j" does not restart
+            keep, chal = rules.challenger(declared, state.imm.log_mode_probs, chal)
+        imm0, since = rules.reset_unused(
+            s, n, state.imm, state.cache.use, declared, state.since, keep
+        )
         if s.walk_rel:  # a declared fault's walk grows with its size
             imm0 = rules.walk_rel(s, n, imm0, declared, since)
         q_aug = jnp.zeros((n + F, n + F), dtype).at[:n, :n].set(params.imm.Q)
@@ -261,6 +269,7 @@ class UIMMEstDiagnoser(Diagnoser):
             low_len,
             since,
             anchor,
+            chal,
         )
         recognised = jnp.where(any_ret, new_declared, dec.candidate_set)
         step_info = info._replace(

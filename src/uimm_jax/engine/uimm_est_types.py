@@ -150,6 +150,14 @@ class EstSettings(NamedTuple):
             defaults were measured); at another sampling time ``dt`` they are converted
             by :func:`settings_at_dt` (0: off, they count the plant's samples whatever
             its ``dt``; session 12).  The walks are per sample either way.
+        retract_keep: while the most probable model is a retraction hypothesis
+            "D - f_j", the undeclared hypothesis that led just before it (``EstState.chal``)
+            does not restart from the prior when it is held at its floor (it still does for
+            low probability): a new fault that cancels a declared one (air in oil and valve
+            wear in the input gain) gives "D - f_j" the lead while the new fault is still
+            small (see ``_est_rules.challenger``; docs/faults.md, "Session 12": default
+            true since then; sim 2's 10 s ramps at 0.3 give 1 false run per 64 instead of 3,
+            and no other acceptance cell changes its declarations, delays or sizes).
     """
 
     walk: float = 1e-3
@@ -183,6 +191,7 @@ class EstSettings(NamedTuple):
     low_floor_age: int = 8000
     declare_rel: float = 0.15
     steps_dt: float = 1e-4
+    retract_keep: bool = True
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -411,6 +420,9 @@ class EstState(NamedTuple):
             declaration; with ``settle_move`` also on a move away from nominal).
         anchor: ``(F, *runs)`` model 0's estimate of each declared fault at its last move
             (``settle_move``; zeros while it is off).
+        chal: ``(*runs,)`` int32, ``j + 1`` for the undeclared hypothesis of fault ``j`` that
+            led last before a retraction hypothesis took the lead, 0 for none
+            (``retract_keep``; zeros while it is off).
     """
 
     imm: IMMState
@@ -421,6 +433,7 @@ class EstState(NamedTuple):
     low_len: jax.Array
     since: jax.Array
     anchor: jax.Array
+    chal: jax.Array
 
 
 class EstInfo(NamedTuple):

@@ -7,7 +7,7 @@ Usage (from the repository root, ``PYTHONPATH=src``):
   defaults changed by ``NAME=VALUE`` (checked as ``--set`` is); writes the benchmark's JSON
   (``ramps_<RAMP>_uimm-est_64<TAG>.json`` here, with ``command`` and the false runs) and
   prints, per run with a false declaration, the declaration and retraction steps and the
-  final estimates.
+  final estimates.  ``OUT`` (env) names another folder for the JSON (session 12).
 * ``ramp_false.py one SIM MAG RUN -- NAME=VALUE ...``: re-simulates run ``RUN`` of that
   sweep (its noise key) as a single run and prints the mode probabilities, the declared set
   and the estimates every ``STEP`` (env, default 5000) samples and around every change of
@@ -35,10 +35,12 @@ from uimm_jax.scenario.write import scenario_to_dict  # noqa: E402
 from uimm_jax.studies import run as srun  # noqa: E402
 from uimm_jax.studies.sweep import run_sweep  # noqa: E402
 
-HERE = Path(__file__).resolve().parent
-REPO = HERE.parents[3]
+REPO = Path(__file__).resolve().parents[4]
+HERE = Path(os.environ.get("OUT", Path(__file__).resolve().parent))  # where sweeps write
 FIRST = {1: ("valve_wear", "leakage"), 2: ("valve_wear", "air_in_oil")}
 RAMP = float(os.environ.get("RAMP", "10"))
+# RAMP=0: the ``sizes`` part's abrupt case (onsets 0.5 / 1.2 s of a 2 s run; session 12)
+ONSET2, DURATION = (1.5 + RAMP, 2.5 + 2 * RAMP) if RAMP else (1.2, 2.0)
 
 
 def _settings(items):
@@ -51,7 +53,7 @@ def _settings(items):
 
 def _scenario(sim, events=None):
     d = scenario_to_dict(load_scenario(REPO / "scenarios" / f"paper_sim{sim}_tuned.toml"))
-    d["duration"] = 2.5 + 2 * RAMP
+    d["duration"] = DURATION
     for e in d["events"]:
         e["time"] = min(e["time"], d["duration"] / 2)
     if events is not None:
@@ -63,7 +65,7 @@ def sweep(sim, tag, mags, sets):
     a, b = FIRST[sim]
     case = {
         "name": f"sim{sim}",
-        "events": [{"fault": a, "time": 0.5}, {"fault": b, "time": 1.5 + RAMP}],
+        "events": [{"fault": a, "time": 0.5}, {"fault": b, "time": ONSET2}],
     }
     t0 = time.perf_counter()
     res = run_sweep(
@@ -120,9 +122,10 @@ def sweep(sim, tag, mags, sets):
 
 def one(sim, mag, r):
     a, b = FIRST[sim]
+    ramp = {"ramp": RAMP} if RAMP else {}
     ev = [
-        {"time": 0.5, "fault": a, "magnitude": mag, "ramp": RAMP},
-        {"time": 1.5 + RAMP, "fault": b, "magnitude": mag, "ramp": RAMP},
+        {"time": 0.5, "fault": a, "magnitude": mag, **ramp},
+        {"time": ONSET2, "fault": b, "magnitude": mag, **ramp},
     ]
     sc = _scenario(sim, ev)
     setup = srun.setup_scenario(sc, "uimm-est")
