@@ -53,6 +53,8 @@ class EstSettings(NamedTuple):
     1, 0, 0, 0 (sim 1) and 3, 1, 0, 0, 0 (sim 2) and changes no other cell's false
     declarations, detection or isolation; first declarations come 0-12 ms later
     (docs/faults.md, "Session 11: a first declaration only on a tight estimate").
+    ``retract_keep`` (session 12) lowers sim 2's 10 s ramps at 0.3 to 1 false run per 64
+    and changes no other acceptance cell's declarations, delays or sizes.
     **Settings counted in steps** (the gaps, ``settle_steps``, ``retract_hold``,
     ``low_floor_age``) were measured on the actuator at ``dt`` = 1e-4 s and are given for
     a plant sampled every ``steps_dt`` seconds (default 1e-4): on a plant sampled every
