@@ -7,6 +7,7 @@ import os
 import numpy as np
 import pytest
 
+from _engine_helpers import biased_sensors_dict
 from _robustness_helpers import short_dict, with_est_settings
 from uimm_jax.engine import _est_rules as rules
 from uimm_jax.engine.bank import fault_table, param_at_magnitude
@@ -446,54 +447,9 @@ def test_sweep_reports_sizes_and_retractions_of_uimm_est():
 
 def test_user_plant_sensor_biases_step_ramp_and_end_are_sized_and_recognised():
     """The issue's user-plant line: additive sensor-bias faults, a step, a ramp, an end."""
-    import jax.numpy as jnp
-
     import uimm_jax
-    from uimm_jax import Fault, LinearPlant
 
-    def matrices(p):
-        A = jnp.array([[0.99, 0.05, 0.0], [-0.05, 0.98, 0.0], [0.0, 0.0, 0.97]])
-        B = jnp.array([[0.0], [0.1], [0.05]])
-        return A, B, jnp.eye(3), jnp.stack([p["b0"], p["b1"], p["b2"]])
-
-    plant = LinearPlant(
-        name="biased_sensors",
-        state_names=("a", "b", "c"),
-        input_names=("u",),
-        output_names=("a", "b", "c"),
-        param_names=("b0", "b1", "b2"),
-        nominal_values=(0.0, 0.0, 0.0),
-        faults=(
-            Fault("bias0", {"b0": 0.1}),
-            Fault("bias1", {"b1": 0.1}),
-            Fault("bias2", {"b2": 0.1}),
-        ),
-        time="discrete",
-        matrices=matrices,
-    )
-    uimm_jax.register_plant(plant, overwrite=True)
-    d = {
-        "name": "biases",
-        "duration": 2.0,
-        "dt": 1e-3,
-        "seed": 0,
-        "plant": {"model": "biased_sensors"},
-        "input": {"kind": "sine", "amplitude": 1.0, "frequency": 2.0},
-        "noise": {"process": [1e-6] * 3, "measurement": [1e-4] * 3},  # sd 0.01: a bias of 1 = 10 sd
-        "faults": {"bias0": {}, "bias1": {}, "bias2": {}},
-        "events": [
-            {"time": 0.3, "fault": "bias0", "magnitude": 1.5},  # a step
-            {"time": 0.8, "fault": "bias1", "magnitude": 0.7, "ramp": 0.05},  # a ramp
-            {"time": 1.2, "fault": "bias2", "magnitude": 1.2, "end": 1.6},  # a bias that ends
-        ],
-        "filter": {
-            "method": "uimm-est",
-            "stay": 0.999,
-            "initial_mean": [0.0, 0.0, 0.0],
-            "initial_cov": 1e-2,
-            "decision": {"threshold": 0.99, "hold": 10},
-        },
-    }
+    d = biased_sensors_dict()  # dt = 1e-3 s; the plant is registered
     res = uimm_jax.run_scenario(parse_scenario(d), seed=3)
     s = res.summary
     assert s["false_declarations"] == 0

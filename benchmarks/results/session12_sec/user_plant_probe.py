@@ -10,62 +10,21 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 import uimm_jax
-from uimm_jax import Fault, LinearPlant
 from uimm_jax.engine.uimm_est_types import est_value_from_text
 from uimm_jax.scenario.parse import parse_scenario
 
-
-def matrices(p):
-    A = jnp.array([[0.99, 0.05, 0.0], [-0.05, 0.98, 0.0], [0.0, 0.0, 0.97]])
-    B = jnp.array([[0.0], [0.1], [0.05]])
-    return A, B, jnp.eye(3), jnp.stack([p["b0"], p["b1"], p["b2"]])
+sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "tests"))
+from _engine_helpers import biased_sensors_dict  # noqa: E402
 
 
 def scenario(est, dt=1e-3):
-    plant = LinearPlant(
-        name="biased_sensors",
-        state_names=("a", "b", "c"),
-        input_names=("u",),
-        output_names=("a", "b", "c"),
-        param_names=("b0", "b1", "b2"),
-        nominal_values=(0.0, 0.0, 0.0),
-        faults=(
-            Fault("bias0", {"b0": 0.1}),
-            Fault("bias1", {"b1": 0.1}),
-            Fault("bias2", {"b2": 0.1}),
-        ),
-        time="discrete",
-        matrices=matrices,
-    )
-    uimm_jax.register_plant(plant, overwrite=True)
-    d = {
-        "name": "biases",
-        "duration": 2.0,
-        "dt": dt,
-        "seed": 0,
-        "plant": {"model": "biased_sensors"},
-        "input": {"kind": "sine", "amplitude": 1.0, "frequency": 2.0},
-        "noise": {"process": [1e-6] * 3, "measurement": [1e-4] * 3},
-        "faults": {"bias0": {}, "bias1": {}, "bias2": {}},
-        "events": [
-            {"time": 0.3, "fault": "bias0", "magnitude": 1.5},
-            {"time": 0.8, "fault": "bias1", "magnitude": 0.7, "ramp": 0.05},
-            {"time": 1.2, "fault": "bias2", "magnitude": 1.2, "end": 1.6},
-        ],
-        "filter": {
-            "method": "uimm-est",
-            "stay": 0.999,
-            "initial_mean": [0.0, 0.0, 0.0],
-            "initial_cov": 1e-2,
-            "decision": {"threshold": 0.99, "hold": 10},
-        },
-    }
+    d = biased_sensors_dict(dt)  # the user-plant test's scenario (tests/_engine_helpers.py)
     if est:
         d["filter"]["est"] = est
     return parse_scenario(d)
