@@ -24,6 +24,13 @@ Design (docs/faults.md, "Cost", "Session 13"):
   ``Qb``, ``reopen_rel`` on ``Pb`` at a declaration; decisions and retractions as
   shipped; hand-over and cache rebuilds (gathered groups) as shipped, under a switch.
 
+Options (fields of :class:`CompactDiagnoser`; the README says which were faster):
+``bias_cond`` (the bias filter under ``lax.cond``), ``table_rebuild`` (a run with nothing
+declared re-centres from a table built once, each fault alone on a grid of ``2 relin``),
+``table`` (the table looked up every step), ``per_model``, ``lean``, ``anchors``, ``lazy``
+(rebuilds per model, one tangent per model, caches at the prior and the floor, re-centring
+at use), ``ablate`` (timing ablations).
+
 What it does not do: no tests; its outputs are not tuned (the declared magnitude comes
 from the bias filter, not from every model's joint estimate).
 """
@@ -187,6 +194,10 @@ class CompactDiagnoser:
     """(run-level cache) while nothing is declared in a run, its hypotheses' caches come
     from a table built once (each fault alone, on a grid of spacing ``2 relin``): no
     rebuild for a re-centring then."""
+    table_rebuild: bool = False
+    """(run-level cache) a rebuild of a run with nothing declared fetches its hypotheses'
+    caches from the table (each fault alone, grid ``2 relin``) instead of computing them;
+    the step itself is unchanged (expansion around ``a0``, here the grid point)."""
     lazy: bool = False
     """(``lean``) re-centre an own slot when it is used (after the restarts, before the
     predict), not after the update: a slot that restarts next step is not rebuilt."""
@@ -225,7 +236,43 @@ class CompactDiagnoser:
         sets, a = jnp.asarray(sets), jnp.asarray(a)
         b, jac = jax.jit(lambda a: _lean_prepare(est, sets, a, sets.astype(a.dtype)))(a)
         tolead = lambda x: np.asarray(jnp.moveaxis(x, -1, 0))  # constants of the compiled step
+        z = jnp.zeros((F, 1))
+        nom, _ = jax.jit(lambda z: _lean_prepare(est, z > 0, z, z))(z)  # model 0, nothing declared
+        self.__dict__["_nominal"] = jax.tree.map(lambda x: np.asarray(x[..., 0]), nom)
         return lo, h, K, jax.tree.map(tolead, b), jax.tree.map(tolead, jac)
+
+    def _table_fetch(self, sm):
+        """An :class:`AugCache` of runs with nothing declared, from the table: ``sm (M, g)``."""
+        F, M = self.num_faults, self.num_models
+        lo, h, K, tb, tj = self._table
+        nom = self.__dict__["_nominal"]
+        a = sm[1:]  # (F, g)
+        g = a.shape[1]
+        idx = jnp.clip(jnp.round((a - lo) / h).astype(jnp.int32), 0, K - 1)
+        flat = idx * F + np.arange(F)[:, None]
+
+        def take(leaf):  # (K F, *leaf) -> (*leaf, F, g)
+            return jnp.moveaxis(jnp.take(leaf, flat, axis=0), (0, 1), (-2, -1))
+
+        def with0(first, rest):  # (*leaf, 1, g) and (*leaf, F, g) -> (*leaf, M, g)
+            return jnp.concatenate([first, rest], axis=-2)
+
+        base = jax.tree.map(
+            lambda n0, leaf: with0(
+                jnp.broadcast_to(n0[..., None, None], n0.shape + (1, g)), take(leaf)
+            ),
+            nom,
+            tb,
+        )
+        jt = jax.tree.map(lambda leaf: with0(jnp.zeros(leaf.shape[1:] + (1, g)), take(leaf)), tj)
+        models = np.arange(M)[:, None]
+        jac = tuple(
+            jax.tree.map(lambda x, k=k: jnp.where(models == k + 1, x, 0.0), jt) for k in range(F)
+        )
+        own = rules.own_slots(F, 1)
+        a0 = jnp.where(own, (lo + h * idx)[:, None, :], 1.0)  # (F, M, g)
+        use = jnp.broadcast_to(own, (F, M, g))
+        return AugCache(base, jac, a0.astype(sm.dtype), use)
 
     def _table_cache(self, slot_mean):
         """Models 1..F from the table: ``(c, jac, in_range)``, leaves ``(*leaf, F, *runs)``."""
@@ -248,7 +295,7 @@ class CompactDiagnoser:
 
     def init(self, est_state) -> CState:
         """From the shipped initial state: drop the other magnitudes (compact layout)."""
-        if self.table:
+        if self.table or self.table_rebuild:
             _ = self._table  # built here, eagerly (the step only reads it)
         n, F = self.est.dyn.n, self.num_faults
         s = self.est.per_sample
@@ -653,6 +700,38 @@ class CompactDiagnoser:
             )
         return LeanCache(b, j, a0, ahat0, jac0, sets, anchor)
 
+    def _tr_switch(self, rebuild, operand, need, new_declared):
+        """``table_rebuild``: hand-over, then gathered computed rebuilds of the runs with a
+        declared fault and gathered table fetches of the others."""
+        est, s = self.est, self.est.settings
+        n, F = est.dyn.n, self.num_faults
+        lo, h, K, _, _ = self._table
+
+        def gsw(fn, needx, args, c):
+            groups = [g for g in self.groups if g < needx.size]
+            count = jnp.sum(needx)
+            br = jnp.where(count == 0, 0, 1 + sum((count > g).astype(jnp.int32) for g in groups))
+            whole = lambda c: jax.tree.map(gather.per_run(needx), fn(*args), c)
+            parts = [functools.partial(gather.gathered, fn, needx, args, group=g) for g in groups]
+            branches = [lambda c: c] + [lambda c, p=p: p(old=c) for p in parts] + [whole]
+            return jax.lax.switch(br, branches, c)
+
+        def do(operand):
+            st2, c, ahat2, Pb2, V2 = rebuild(operand, group="none")
+            sm = st2.mean[n]
+            a = sm[1:]
+            on = jnp.all((a >= lo - h / 2) & (a < lo + h * (K - 0.5)), axis=0)
+            need_t = need & ~jnp.any(new_declared, axis=0) & on
+            need_p = need & ~need_t
+            hyp2 = rules.own_slots(F, new_declared.ndim - 1) & ~new_declared[:, None]
+            a0 = jnp.where(hyp2, sm[None], ahat2[:, None])
+            c = gsw(est._cache, need_p, (new_declared, a0), c)
+            c = gsw(self._table_fetch, need_t, (sm,), c)
+            return st2, c, ahat2, Pb2, V2
+
+        del s
+        return jax.lax.cond(jnp.any(need), do, lambda o: o, operand)
+
     def _handover(self, st, cache, ahat, Pb, V, winner, changed, declared, new_declared, since):
         """Hand-over on a change of D; re-centring; the cache rebuilt (as shipped)."""
         est = self.est
@@ -746,6 +825,8 @@ class CompactDiagnoser:
                     Pb,
                     V,
                 )
+            if group == "none":  # the state's hand-over alone (table_rebuild does the cache)
+                return IMMState(mean, cov, lm), c, ahat, Pb, V
             a0 = jnp.where(hyp2, sm[None], ahat[:, None])
             if self.per_model:
                 fn = functools.partial(est.aug.prepare, tangent_order=est.settings.tangent_order)
@@ -759,6 +840,8 @@ class CompactDiagnoser:
             return IMMState(mean, cov, lm), fresh, ahat, Pb, V
 
         operand = (st, cache, ahat, Pb, V)
+        if self.table_rebuild:
+            return self._tr_switch(rebuild, operand, need, new_declared)
         groups = [g for g in self.groups if g < need.size]
         if not groups:
             return jax.lax.cond(jnp.any(need), rebuild, lambda o: o, operand)

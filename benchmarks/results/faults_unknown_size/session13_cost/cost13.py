@@ -47,30 +47,29 @@ def batch_state(st, B):
 
 
 def variant(name):
-    """``BASE[:G1,G2,...][-no-ABL[+ABL]]``: BASE ``compact`` (run rebuilds), ``pm``
-    (per-model rebuilds), ``lean`` (one tangent per model), each with a ``c`` suffix for
-    the bias filter under ``lax.cond``, then a ``t`` suffix for the table while nothing is
-    declared; groups ``G`` (default 8, 32 for ``compact``,
-    1, 8, 32 otherwise); ablations ``rebuild``, ``bias``."""
+    """``BASE[SUFFIX][:G1,G2,...][-no-ABL[+ABL]]``.
+
+    BASE: ``compact`` (rebuilds per run), ``pm`` (per model x run pair), ``lean`` (one
+    tangent per model).  SUFFIX letters: ``c`` the bias filter under ``lax.cond``, ``t`` the
+    table looked up every step while nothing is declared, ``r`` the table fetched at
+    rebuilds only.  Groups ``G``: default 8, 32 (``compact``), 1, 8, 32 (the others).
+    Ablations: ``rebuild``, ``bias``.
+    """
     head, _, abl = name.partition("-no-")
     base, _, groups = head.partition(":")
     kw = {"ablate": frozenset(abl.split("+")) if abl else frozenset()}
-    if base.endswith("t"):
-        kw["table"] = True
-        base = base[:-1]
-    if base.endswith("c"):
-        kw["bias_cond"] = True
-        base = base[:-1]
+    for prefix in ("compact", "pm", "lean"):
+        if base.startswith(prefix):
+            base, suffix = prefix, base[len(prefix) :]
+            break
+    else:
+        raise ValueError(name)
+    assert set(suffix) <= set("ctr"), name
+    kw |= {"bias_cond": "c" in suffix, "table": "t" in suffix, "table_rebuild": "r" in suffix}
     if base == "pm":
         kw |= {"per_model": True, "groups": (1, 8, 32)}
     elif base == "lean":
         kw |= {"lean": True, "groups": (1, 8, 32)}
-    elif base == "lazy":
-        kw |= {"lean": True, "anchors": True, "lazy": True, "groups": (1, 8, 32)}
-    elif base == "anch":
-        kw |= {"lean": True, "anchors": True, "groups": (1, 8, 32)}
-    else:
-        assert base == "compact", name
     if groups:
         kw["groups"] = tuple(int(g) for g in groups.split(","))
     return kw

@@ -46,6 +46,7 @@ VARIANTS = {
     "anch": CompactDiagnoser(est.diagnoser, lean=True, anchors=True, groups=(1, 8, 32)),
     "lazy": CompactDiagnoser(est.diagnoser, lean=True, anchors=True, lazy=True, groups=(1, 8, 32)),
     "compactct": CompactDiagnoser(est.diagnoser, bias_cond=True, table=True),
+    "compactcr": CompactDiagnoser(est.diagnoser, bias_cond=True, table_rebuild=True),
 }
 for name, diag in VARIANTS.items():
     st0 = est.init_state if name == "uimm-est" else diag.init(est.init_state)
