@@ -182,7 +182,8 @@ class CompactDiagnoser:
     est: Any
     ablate: frozenset = frozenset()
     """Ablations, for timing only: ``"rebuild"`` (never rebuild the cache), ``"bias"`` (no
-    bias filter: no ``Fa0``, ``V``, consider term)."""
+    bias filter: no ``Fa0``, ``V``, consider term), ``"computed"`` (with ``table_rebuild``:
+    the table fetches only, no rebuild that computes ``expm``)."""
     per_model: bool = False
     """Rebuild the cache of the models that need it (gathered over model x run pairs),
     not of every model of a run that needs one."""
@@ -723,6 +724,8 @@ class CompactDiagnoser:
             on = jnp.all((a >= lo - h / 2) & (a < lo + h * (K - 0.5)), axis=0)
             need_t = need & ~jnp.any(new_declared, axis=0) & on
             need_p = need & ~need_t
+            if "computed" in self.ablate:  # timing only: no computed rebuild (table fetches stay)
+                need_p = jnp.zeros_like(need_p)
             hyp2 = rules.own_slots(F, new_declared.ndim - 1) & ~new_declared[:, None]
             a0 = jnp.where(hyp2, sm[None], ahat2[:, None])
             c = gsw(est._cache, need_p, (new_declared, a0), c)
