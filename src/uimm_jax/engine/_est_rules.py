@@ -79,6 +79,42 @@ def moved(s: EstSettings, declared, est, est_sd, since, anchor):
     return jnp.where(grew, 0, since), jnp.where(far, est, anchor)
 
 
+def settle_low(s: EstSettings, declared, est, est_sd, since, anchor, anchor_sd):
+    """``settle_low``: growth counted from a settled estimate, and a walk that shrinks closes.
+
+    :func:`moved` restarts a declared fault's age (its fast walk) when its estimate grows
+    ``settle_move`` standard deviations beyond ``anchor``.  Two stale anchors defeat it
+    (docs/faults.md, "Session 13"):
+
+    * **too high**: the anchor is set at the declaration, to the declaring hypothesis'
+      estimate.  Declared above the truth early in a ramp (valve wear at 0.155 for 0.134),
+      the estimate falls back under the wide sd of ``reopen_rel`` without moving the
+      anchor, settles, lags its ramp, and must climb above the old anchor before any
+      growth counts; a look-alike (leakage) explains the lag first.  Here, on the step a
+      declared fault settles (age ``since == settle_steps``), an anchor farther from
+      nominal than the estimate comes down to it.
+    * **too low**: an anchor set while the fault still grew lies below the settled
+      estimate, which crosses ``settle_move`` of its shrinking sd by noise; the walk
+      re-opens and absorbs a new fault that cancels the declared one (air in oil for
+      valve wear), and the fault is retracted.  Here a walk that was re-opened (age below
+      ``settle_steps``) closes (the fault settles at once, re-anchored) when the estimate
+      falls towards nominal ``settle_move`` times ``anchor_sd`` (its sd when the anchor was
+      set) below the anchor: a fault that grows does not shrink.  After a declaration
+      ``anchor_sd`` is the declaring hypothesis' sd, wide, so a young fault's estimate may
+      still fall to the truth.
+
+    Call before :func:`moved` with the old anchor; ``anchor_sd`` must then be set
+    (to ``est_sd``) wherever :func:`moved` or a declaration sets the anchor.  Returns the
+    new ``since``, ``anchor`` and ``anchor_sd``.
+    """
+    shrink = jnp.abs(anchor) - jnp.abs(est)
+    back = declared & (since < s.settle_steps) & (shrink > s.settle_move * anchor_sd)
+    since = jnp.where(back, s.settle_steps, since)
+    down = declared & (since == s.settle_steps) & (shrink > 0)
+    anchor = jnp.where(back | down, est, anchor)
+    return since, anchor, jnp.where(back | down, est_sd, anchor_sd)
+
+
 def challenger(declared, log_mode_probs, chal):
     """``retract_keep``: the challenger kept over a spell of a retraction hypothesis.
 

@@ -177,6 +177,7 @@ class UIMMEstDiagnoser(Diagnoser):
             jnp.full((F,) + tuple(runs), rules.gap_cap(s), jnp.int32),
             jnp.zeros((F,) + tuple(runs), dtype),
             jnp.zeros(tuple(runs), jnp.int32),
+            jnp.zeros((F,) + tuple(runs), dtype),
         )
 
     def step(
@@ -253,10 +254,18 @@ class UIMMEstDiagnoser(Diagnoser):
         new_declared = jnp.where(retract, False, dec.declared)
         imm_state, cache = self._handover(imm_state, state.cache, winner, changed, new_declared)
         imm_state = rules.reopen(s, n, imm_state, new_declared & ~declared)
-        anchor = state.anchor
+        anchor, anchor_sd = state.anchor, state.anchor_sd
         if s.walk_settled and s.settle_move > 0:  # a fault still growing is not settled
+            if s.settle_low:  # anchors that follow a settled or shrinking estimate down
+                since, anchor, anchor_sd = rules.settle_low(
+                    s, declared, est, est_sd, since, anchor, anchor_sd
+                )
+                old = anchor
             since, anchor = rules.moved(s, declared, est, est_sd, since, anchor)
             anchor = jnp.where(new_declared & ~declared, est, anchor)
+            if s.settle_low:  # the sd of the estimate where the anchor was set
+                set_now = (anchor != old) | (new_declared & ~declared)
+                anchor_sd = jnp.where(set_now, est_sd, anchor_sd)
         if s.walk_settled:  # since: a declared fault's age; a retracted one is due again
             since = jnp.where(new_declared & ~declared, 0, since)
             since = jnp.where(retract, rules.gap_cap(s), since).astype(jnp.int32)
@@ -270,6 +279,7 @@ class UIMMEstDiagnoser(Diagnoser):
             since,
             anchor,
             chal,
+            anchor_sd,
         )
         recognised = jnp.where(any_ret, new_declared, dec.candidate_set)
         step_info = info._replace(

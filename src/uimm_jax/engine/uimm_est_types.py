@@ -160,6 +160,11 @@ class EstSettings(NamedTuple):
             small (see ``_est_rules.challenger``; docs/faults.md, "Session 12": default
             true since then; sim 2's 10 s ramps at 0.3 give 1 false run per 64 instead of 3,
             and no other acceptance cell changes its declarations, delays or sizes).
+        settle_low: with ``settle_move``, growth is counted from a settled estimate: on the
+            step a declared fault settles its anchor comes down to its estimate if that is
+            nearer nominal, and a walk re-opened by growth closes (the fault settles) when
+            the estimate falls ``settle_move`` times the anchor's sd towards nominal (see
+            ``_est_rules.settle_low``; docs/faults.md, "Session 13"; default false).
     """
 
     walk: float = 1e-3
@@ -194,6 +199,7 @@ class EstSettings(NamedTuple):
     declare_rel: float = 0.15
     steps_dt: float = 1e-4
     retract_keep: bool = True
+    settle_low: bool = False
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -425,6 +431,8 @@ class EstState(NamedTuple):
         chal: ``(*runs,)`` int32, ``j + 1`` for the undeclared hypothesis of fault ``j`` that
             led last before a retraction hypothesis took the lead, 0 for none
             (``retract_keep``; zeros while it is off).
+        anchor_sd: ``(F, *runs)`` the standard deviation of that estimate when ``anchor``
+            was set (``settle_low``; zeros while it is off).
     """
 
     imm: IMMState
@@ -436,6 +444,7 @@ class EstState(NamedTuple):
     since: jax.Array
     anchor: jax.Array
     chal: jax.Array
+    anchor_sd: jax.Array
 
 
 class EstInfo(NamedTuple):
