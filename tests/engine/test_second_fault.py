@@ -136,6 +136,31 @@ def test_settle_move_restarts_a_fault_s_age_only_when_its_estimate_grows():
     np.testing.assert_allclose(new_anchor, [[0.6, 0.4, 0.5, 0.5]])
 
 
+def test_settle_low_lowers_a_settling_anchor_and_closes_a_walk_that_shrinks():
+    """``settle_low`` (session 13): on the step a declared fault settles, an anchor farther
+    from nominal than its estimate comes down to it; a walk still open closes (age set to
+    ``settle_steps``, re-anchored) when its estimate has fallen ``settle_move`` anchor sds
+    towards nominal; nothing else moves."""
+    import jax.numpy as jnp
+
+    from uimm_jax.engine.uimm_est import EstSettings
+
+    s = EstSettings(walk_settled=3e-5, settle_steps=100, settle_move=5.0, settle_low=True)
+    # runs: settling below the anchor, settling above it, settled long ago, open and
+    # shrinking (tight anchor), open and shrinking (wide anchor: just declared), a negative
+    # magnitude shrinking, not declared
+    declared = jnp.asarray([[True, True, True, True, True, True, False]])
+    since = jnp.asarray([[100, 100, 150, 20, 20, 20, 100]], jnp.int32)
+    anchor = jnp.asarray([[0.5, 0.5, 0.5, 0.5, 0.5, -0.5, 0.5]])
+    anchor_sd = jnp.asarray([[0.02, 0.02, 0.02, 0.002, 0.02, 0.002, 0.02]])
+    est = jnp.asarray([[0.45, 0.55, 0.45, 0.48, 0.48, -0.48, 0.45]])
+    est_sd = jnp.full((1, 7), 0.01)
+    got = rules.settle_low(s, declared, est, est_sd, since, anchor, anchor_sd)
+    np.testing.assert_array_equal(got[0], [[100, 100, 150, 100, 20, 100, 100]])
+    np.testing.assert_allclose(got[1], [[0.45, 0.5, 0.5, 0.48, 0.5, -0.48, 0.5]])
+    np.testing.assert_allclose(got[2], [[0.01, 0.02, 0.02, 0.01, 0.02, 0.01, 0.02]])
+
+
 def test_retract_keep_keeps_only_the_challenger_that_led_before_the_retraction_hypothesis():
     """``retract_keep`` (session 12): while "D - f_j" leads, the undeclared hypothesis that
     led just before it does not restart at its floor; the others do, and so does it once

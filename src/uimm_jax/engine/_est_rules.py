@@ -80,7 +80,7 @@ def moved(s: EstSettings, declared, est, est_sd, since, anchor):
 
 
 def settle_low(s: EstSettings, declared, est, est_sd, since, anchor, anchor_sd):
-    """``settle_low``: growth counted from a settled estimate, and a walk that shrinks closes.
+    """``settle_low``: a declaration's anchor comes down on settling; a walk that shrinks closes.
 
     :func:`moved` restarts a declared fault's age (its fast walk) when its estimate grows
     ``settle_move`` standard deviations beyond ``anchor``.  Two stale anchors defeat it
@@ -91,28 +91,33 @@ def settle_low(s: EstSettings, declared, est, est_sd, since, anchor, anchor_sd):
       the estimate falls back under the wide sd of ``reopen_rel`` without moving the
       anchor, settles, lags its ramp, and must climb above the old anchor before any
       growth counts; a look-alike (leakage) explains the lag first.  Here, on the step a
-      declared fault settles (age ``since == settle_steps``), an anchor farther from
-      nominal than the estimate comes down to it.
+      declared fault settles (age ``since == settle_steps``) with its declaration's anchor
+      (``anchor_sd < 0``), an anchor farther from nominal than the estimate comes down to
+      it.  An anchor set by growth is left alone: at the end of a fast ramp the estimate
+      settles from a wide walk, and an anchor lowered to it re-opens the walk by noise.
     * **too low**: an anchor set while the fault still grew lies below the settled
       estimate, which crosses ``settle_move`` of its shrinking sd by noise; the walk
       re-opens and absorbs a new fault that cancels the declared one (air in oil for
-      valve wear), and the fault is retracted.  Here a walk that was re-opened (age below
-      ``settle_steps``) closes (the fault settles at once, re-anchored) when the estimate
-      falls towards nominal ``settle_move`` times ``anchor_sd`` (its sd when the anchor was
-      set) below the anchor: a fault that grows does not shrink.  After a declaration
-      ``anchor_sd`` is the declaring hypothesis' sd, wide, so a young fault's estimate may
-      still fall to the truth.
+      valve wear), and the fault is retracted.  Here the walk of the only declared fault,
+      re-opened by growth (``anchor_sd > 0`` and age below ``settle_steps``), closes (the
+      fault settles at once, its anchor kept) when the estimate falls towards nominal
+      ``settle_low`` times ``anchor_sd`` (its sd when growth was found) below the anchor:
+      a fault that grows does not shrink.  With a second fault declared the two share
+      the evidence (valve wear under air in oil), and a walk closed at a value pulled by
+      the other fault stays wrong: there the walk is left as :func:`moved` sets it.
 
-    Call before :func:`moved` with the old anchor; ``anchor_sd`` must then be set
-    (to ``est_sd``) wherever :func:`moved` or a declaration sets the anchor.  Returns the
-    new ``since``, ``anchor`` and ``anchor_sd``.
+    ``anchor_sd`` is the estimate's sd when the anchor was set, negative while the anchor
+    is the declaration's (the declaring hypothesis' sd, set by the caller) and positive
+    once :func:`moved` (or this rule) has moved it.  Call before :func:`moved`.  Returns
+    the new ``since``, ``anchor`` and ``anchor_sd``.
     """
     shrink = jnp.abs(anchor) - jnp.abs(est)
-    back = declared & (since < s.settle_steps) & (shrink > s.settle_move * anchor_sd)
+    alone = declared & (jnp.sum(declared, axis=0) == 1)  # the only declared fault
+    grown = alone & (since < s.settle_steps) & (anchor_sd > 0)
+    back = grown & (shrink > s.settle_low * anchor_sd)
     since = jnp.where(back, s.settle_steps, since)
-    down = declared & (since == s.settle_steps) & (shrink > 0)
-    anchor = jnp.where(back | down, est, anchor)
-    return since, anchor, jnp.where(back | down, est_sd, anchor_sd)
+    down = declared & (since == s.settle_steps) & (anchor_sd < 0) & (shrink > 0)
+    return since, jnp.where(down, est, anchor), jnp.where(down, est_sd, anchor_sd)
 
 
 def challenger(declared, log_mode_probs, chal):

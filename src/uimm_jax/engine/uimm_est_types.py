@@ -160,11 +160,11 @@ class EstSettings(NamedTuple):
             small (see ``_est_rules.challenger``; docs/faults.md, "Session 12": default
             true since then; sim 2's 10 s ramps at 0.3 give 1 false run per 64 instead of 3,
             and no other acceptance cell changes its declarations, delays or sizes).
-        settle_low: with ``settle_move``, growth is counted from a settled estimate: on the
-            step a declared fault settles its anchor comes down to its estimate if that is
-            nearer nominal, and a walk re-opened by growth closes (the fault settles) when
-            the estimate falls ``settle_move`` times the anchor's sd towards nominal (see
-            ``_est_rules.settle_low``; docs/faults.md, "Session 13"; default false).
+        settle_low: with ``settle_move``, on the step a declared fault settles an anchor
+            still at its declaration's value comes down to the estimate if that is nearer
+            nominal, and a walk re-opened by growth closes (the fault settles) when the
+            estimate falls this many of the anchor's standard deviations towards nominal
+            (0: off; see ``_est_rules.settle_low``; docs/faults.md, "Session 13").
     """
 
     walk: float = 1e-3
@@ -199,7 +199,7 @@ class EstSettings(NamedTuple):
     declare_rel: float = 0.15
     steps_dt: float = 1e-4
     retract_keep: bool = True
-    settle_low: bool = False
+    settle_low: float = 0.0
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -234,6 +234,7 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "low_floor_age": (0, False, "steps; 0: off"),
     "declare_rel": (0.0, False, "a fraction of the estimate; 0: off"),
     "steps_dt": (0.0, False, "seconds; 0: off, counts are samples"),
+    "settle_low": (0.0, False, "standard deviations; 0: off"),
 }
 _HIGH = {"restart_below": 1.0, "tangent_order": 12}
 
@@ -432,7 +433,8 @@ class EstState(NamedTuple):
             led last before a retraction hypothesis took the lead, 0 for none
             (``retract_keep``; zeros while it is off).
         anchor_sd: ``(F, *runs)`` the standard deviation of that estimate when ``anchor``
-            was set (``settle_low``; zeros while it is off).
+            was set, negative while the anchor is the declaration's (``settle_low``;
+            zeros while it is off).
     """
 
     imm: IMMState
