@@ -80,11 +80,11 @@ def moved(s: EstSettings, declared, est, est_sd, since, anchor):
 
 
 def settle_low(s: EstSettings, declared, est, est_sd, since, anchor, anchor_sd):
-    """``settle_low``: a declaration's anchor comes down on settling; a walk that shrinks closes.
+    """``settle_low``: :func:`moved`'s growth test without its two stale anchors.
 
     :func:`moved` restarts a declared fault's age (its fast walk) when its estimate grows
-    ``settle_move`` standard deviations beyond ``anchor``.  Two stale anchors defeat it
-    (docs/faults.md, "Session 13"):
+    ``settle_move`` standard deviations (of the estimate now) beyond ``anchor``.  Two stale
+    anchors defeat it (docs/faults.md, "Session 13"):
 
     * **too high**: the anchor is set at the declaration, to the declaring hypothesis'
       estimate.  Declared above the truth early in a ramp (valve wear at 0.155 for 0.134),
@@ -92,32 +92,30 @@ def settle_low(s: EstSettings, declared, est, est_sd, since, anchor, anchor_sd):
       anchor, settles, lags its ramp, and must climb above the old anchor before any
       growth counts; a look-alike (leakage) explains the lag first.  Here, on the step a
       declared fault settles (age ``since == settle_steps``) with its declaration's anchor
-      (``anchor_sd < 0``), an anchor farther from nominal than the estimate comes down to
-      it.  An anchor set by growth is left alone: at the end of a fast ramp the estimate
+      (``anchor_sd == 0``), an anchor farther from nominal than the estimate comes down to
+      it.  An anchor set by a move is left alone: at the end of a fast ramp the estimate
       settles from a wide walk, and an anchor lowered to it re-opens the walk by noise.
-    * **too low**: an anchor set while the fault still grew lies below the settled
-      estimate, which crosses ``settle_move`` of its shrinking sd by noise; the walk
-      re-opens and absorbs a new fault that cancels the declared one (air in oil for
-      valve wear), and the fault is retracted.  Here the walk of the only declared fault,
-      re-opened by growth (``anchor_sd > 0`` and age below ``settle_steps``), closes (the
-      fault settles at once, its anchor kept) when the estimate falls towards nominal
-      ``settle_low`` times ``anchor_sd`` (its sd when growth was found) below the anchor:
-      a fault that grows does not shrink.  With a second fault declared the two share
-      the evidence (valve wear under air in oil), and a walk closed at a value pulled by
-      the other fault stays wrong: there the walk is left as :func:`moved` sets it.
+    * **too low**: an anchor set by growth while the fault was settled lies below the
+      estimate once the ramp has ended; the estimate settles there while its sd shrinks
+      (0.0018 to 0.0015 in run 47) and crosses ``settle_move`` sds by noise; the walk
+      re-opens and absorbs a new fault that cancels the declared one (air in oil for valve
+      wear), which is then retracted.  Here, while the fault is the only declared one,
+      growth from such an anchor (``anchor_sd > 0``: its sd then) is measured in the
+      larger of the sd now and the anchor's.  With a second fault declared the sd now
+      alone (a settled estimate that lags a second fault's ramp must still re-open:
+      session 12's ``settle_sd`` did this for every anchor and traded run 47 for run 26,
+      air in oil lagging its own ramp).
 
-    ``anchor_sd`` is the estimate's sd when the anchor was set, negative while the anchor
-    is the declaration's (the declaring hypothesis' sd, set by the caller) and positive
-    once :func:`moved` (or this rule) has moved it.  Call before :func:`moved`.  Returns
-    the new ``since``, ``anchor`` and ``anchor_sd``.
+    ``anchor_sd`` is 0 for a declaration's anchor, the estimate's sd when :func:`moved` set
+    the anchor of a settled fault, and minus it when the walk was open then (the caller
+    sets it after :func:`moved`).  Call before :func:`moved`.  Returns the new ``anchor``,
+    ``anchor_sd`` and the sd for :func:`moved`'s test.
     """
-    shrink = jnp.abs(anchor) - jnp.abs(est)
+    down = declared & (since == s.settle_steps) & (anchor_sd == 0)
+    down = down & (jnp.abs(est) < jnp.abs(anchor))
     alone = declared & (jnp.sum(declared, axis=0) == 1)  # the only declared fault
-    grown = alone & (since < s.settle_steps) & (anchor_sd > 0)
-    back = grown & (shrink > s.settle_low * anchor_sd)
-    since = jnp.where(back, s.settle_steps, since)
-    down = declared & (since == s.settle_steps) & (anchor_sd < 0) & (shrink > 0)
-    return since, jnp.where(down, est, anchor), jnp.where(down, est_sd, anchor_sd)
+    sd = jnp.where(alone, jnp.maximum(est_sd, anchor_sd), est_sd)
+    return jnp.where(down, est, anchor), anchor_sd, sd
 
 
 def challenger(declared, log_mode_probs, chal):

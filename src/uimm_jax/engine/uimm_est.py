@@ -256,16 +256,18 @@ class UIMMEstDiagnoser(Diagnoser):
         imm_state = rules.reopen(s, n, imm_state, new_declared & ~declared)
         anchor, anchor_sd = state.anchor, state.anchor_sd
         if s.walk_settled and s.settle_move > 0:  # a fault still growing is not settled
-            if s.settle_low > 0:  # anchors that follow a settled or shrinking estimate down
-                since, anchor, anchor_sd = rules.settle_low(
+            sd = est_sd
+            if s.settle_low:  # a declaration's anchor comes down; growth in the anchor's sd
+                anchor, anchor_sd, sd = rules.settle_low(
                     s, declared, est, est_sd, since, anchor, anchor_sd
                 )
-                old = anchor
-            since, anchor = rules.moved(s, declared, est, est_sd, since, anchor)
+                old, settled = anchor, since >= s.settle_steps
+            since, anchor = rules.moved(s, declared, est, sd, since, anchor)
             anchor = jnp.where(new_declared & ~declared, est, anchor)
-            if s.settle_low > 0:  # the sd where the anchor was set: < 0 at a declaration
-                anchor_sd = jnp.where(anchor != old, est_sd, anchor_sd)
-                anchor_sd = jnp.where(new_declared & ~declared, -est_sd, anchor_sd)
+            if s.settle_low:  # the sd where the anchor was set: 0 at a declaration
+                moved_sd = jnp.where(settled, est_sd, -est_sd)
+                anchor_sd = jnp.where(anchor != old, moved_sd, anchor_sd)
+                anchor_sd = jnp.where(new_declared & ~declared, 0.0, anchor_sd)
         if s.walk_settled:  # since: a declared fault's age; a retracted one is due again
             since = jnp.where(new_declared & ~declared, 0, since)
             since = jnp.where(retract, rules.gap_cap(s), since).astype(jnp.int32)

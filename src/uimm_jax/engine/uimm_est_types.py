@@ -162,9 +162,10 @@ class EstSettings(NamedTuple):
             and no other acceptance cell changes its declarations, delays or sizes).
         settle_low: with ``settle_move``, on the step a declared fault settles an anchor
             still at its declaration's value comes down to the estimate if that is nearer
-            nominal, and a walk re-opened by growth closes (the fault settles) when the
-            estimate falls this many of the anchor's standard deviations towards nominal
-            (0: off; see ``_est_rules.settle_low``; docs/faults.md, "Session 13").
+            nominal, and while the fault is the only declared one, growth from an anchor
+            set while it was settled is measured in the larger of the sd now and the sd
+            then (see ``_est_rules.settle_low``; docs/faults.md, "Session 13"; default
+            false).
     """
 
     walk: float = 1e-3
@@ -199,7 +200,7 @@ class EstSettings(NamedTuple):
     declare_rel: float = 0.15
     steps_dt: float = 1e-4
     retract_keep: bool = True
-    settle_low: float = 0.0
+    settle_low: bool = False
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -234,7 +235,6 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "low_floor_age": (0, False, "steps; 0: off"),
     "declare_rel": (0.0, False, "a fraction of the estimate; 0: off"),
     "steps_dt": (0.0, False, "seconds; 0: off, counts are samples"),
-    "settle_low": (0.0, False, "standard deviations; 0: off"),
 }
 _HIGH = {"restart_below": 1.0, "tangent_order": 12}
 
@@ -433,8 +433,8 @@ class EstState(NamedTuple):
             led last before a retraction hypothesis took the lead, 0 for none
             (``retract_keep``; zeros while it is off).
         anchor_sd: ``(F, *runs)`` the standard deviation of that estimate when ``anchor``
-            was set, negative while the anchor is the declaration's (``settle_low``;
-            zeros while it is off).
+            was moved while the fault was settled (minus it if its walk was open; 0 for
+            a declaration's anchor; ``settle_low``, zeros while it is off).
     """
 
     imm: IMMState
