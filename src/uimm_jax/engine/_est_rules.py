@@ -79,43 +79,26 @@ def moved(s: EstSettings, declared, est, est_sd, since, anchor):
     return jnp.where(grew, 0, since), jnp.where(far, est, anchor)
 
 
-def settle_low(s: EstSettings, declared, est, est_sd, since, anchor, anchor_sd):
-    """``settle_low``: :func:`moved`'s growth test without its two stale anchors.
+def settle_low(s: EstSettings, declared, est, since, anchor, fresh):
+    """``settle_low``: a declaration's anchor comes down to the estimate when it settles.
 
     :func:`moved` restarts a declared fault's age (its fast walk) when its estimate grows
-    ``settle_move`` standard deviations (of the estimate now) beyond ``anchor``.  Two stale
-    anchors defeat it (docs/faults.md, "Session 13"):
-
-    * **too high**: the anchor is set at the declaration, to the declaring hypothesis'
-      estimate.  Declared above the truth early in a ramp (valve wear at 0.155 for 0.134),
-      the estimate falls back under the wide sd of ``reopen_rel`` without moving the
-      anchor, settles, lags its ramp, and must climb above the old anchor before any
-      growth counts; a look-alike (leakage) explains the lag first.  Here, on the step a
-      declared fault settles (age ``since == settle_steps``) with its declaration's anchor
-      (``anchor_sd == 0``), an anchor farther from nominal than the estimate comes down to
-      it.  An anchor set by a move is left alone: at the end of a fast ramp the estimate
-      settles from a wide walk, and an anchor lowered to it re-opens the walk by noise.
-    * **too low**: an anchor set by growth while the fault was settled lies below the
-      estimate once the ramp has ended; the estimate settles there while its sd shrinks
-      (0.0018 to 0.0015 in run 47) and crosses ``settle_move`` sds by noise; the walk
-      re-opens and absorbs a new fault that cancels the declared one (air in oil for valve
-      wear), which is then retracted.  Here, while the fault is the only declared one,
-      growth from such an anchor (``anchor_sd > 0``: its sd then) is measured in the
-      larger of the sd now and the anchor's.  With a second fault declared the sd now
-      alone (a settled estimate that lags a second fault's ramp must still re-open:
-      session 12's ``settle_sd`` did this for every anchor and traded run 47 for run 26,
-      air in oil lagging its own ramp).
-
-    ``anchor_sd`` is 0 for a declaration's anchor, the estimate's sd when :func:`moved` set
-    the anchor of a settled fault, and minus it when the walk was open then (the caller
-    sets it after :func:`moved`).  Call before :func:`moved`.  Returns the new ``anchor``,
-    ``anchor_sd`` and the sd for :func:`moved`'s test.
+    ``settle_move`` standard deviations beyond ``anchor``.  The anchor is set at the
+    declaration, to the declaring hypothesis' estimate.  Declared above the truth early in
+    a ramp (valve wear at 0.155 for 0.134 in sim 1's run 53 of the 10 s ramps at 0.5), the
+    estimate falls back to the truth under the wide sd of ``reopen_rel`` (not a move: the
+    sd is wide), settles, lags its ramp, and must climb above the old anchor before any
+    growth counts; a look-alike (leakage) explains the lag first and is declared
+    (docs/faults.md, "Session 13").  Here, on the step a declared fault settles (age
+    ``since == settle_steps``) with its declaration's anchor (``fresh``), an anchor farther
+    from nominal than the estimate comes down to it, so that growth counts from where the
+    estimate settled.  An anchor set by a move is left alone: at the end of a fast ramp the
+    estimate settles from a wide walk, and an anchor lowered to it re-opens the walk by
+    noise (measured: sim 2's 1 s ramps lost valve wear's coverage).  Returns the new
+    ``anchor`` and ``fresh``.
     """
-    down = declared & (since == s.settle_steps) & (anchor_sd == 0)
-    down = down & (jnp.abs(est) < jnp.abs(anchor))
-    alone = declared & (jnp.sum(declared, axis=0) == 1)  # the only declared fault
-    sd = jnp.where(alone, jnp.maximum(est_sd, anchor_sd), est_sd)
-    return jnp.where(down, est, anchor), anchor_sd, sd
+    down = declared & fresh & (since == s.settle_steps) & (jnp.abs(est) < jnp.abs(anchor))
+    return jnp.where(down, est, anchor), fresh & ~down
 
 
 def challenger(declared, log_mode_probs, chal):

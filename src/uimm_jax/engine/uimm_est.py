@@ -177,7 +177,7 @@ class UIMMEstDiagnoser(Diagnoser):
             jnp.full((F,) + tuple(runs), rules.gap_cap(s), jnp.int32),
             jnp.zeros((F,) + tuple(runs), dtype),
             jnp.zeros(tuple(runs), jnp.int32),
-            jnp.zeros((F,) + tuple(runs), dtype),
+            jnp.zeros((F,) + tuple(runs), bool),
         )
 
     def step(
@@ -254,20 +254,15 @@ class UIMMEstDiagnoser(Diagnoser):
         new_declared = jnp.where(retract, False, dec.declared)
         imm_state, cache = self._handover(imm_state, state.cache, winner, changed, new_declared)
         imm_state = rules.reopen(s, n, imm_state, new_declared & ~declared)
-        anchor, anchor_sd = state.anchor, state.anchor_sd
+        anchor, fresh = state.anchor, state.fresh
         if s.walk_settled and s.settle_move > 0:  # a fault still growing is not settled
-            sd = est_sd
-            if s.settle_low:  # a declaration's anchor comes down; growth in the anchor's sd
-                anchor, anchor_sd, sd = rules.settle_low(
-                    s, declared, est, est_sd, since, anchor, anchor_sd
-                )
-                old, settled = anchor, since >= s.settle_steps
-            since, anchor = rules.moved(s, declared, est, sd, since, anchor)
+            if s.settle_low:  # a declaration's anchor comes down to a settled estimate
+                anchor, fresh = rules.settle_low(s, declared, est, since, anchor, fresh)
+                old = anchor
+            since, anchor = rules.moved(s, declared, est, est_sd, since, anchor)
             anchor = jnp.where(new_declared & ~declared, est, anchor)
-            if s.settle_low:  # the sd where the anchor was set: 0 at a declaration
-                moved_sd = jnp.where(settled, est_sd, -est_sd)
-                anchor_sd = jnp.where(anchor != old, moved_sd, anchor_sd)
-                anchor_sd = jnp.where(new_declared & ~declared, 0.0, anchor_sd)
+            if s.settle_low:  # the anchor is the declaration's until it moves
+                fresh = jnp.where(anchor != old, False, fresh) | (new_declared & ~declared)
         if s.walk_settled:  # since: a declared fault's age; a retracted one is due again
             since = jnp.where(new_declared & ~declared, 0, since)
             since = jnp.where(retract, rules.gap_cap(s), since).astype(jnp.int32)
@@ -281,7 +276,7 @@ class UIMMEstDiagnoser(Diagnoser):
             since,
             anchor,
             chal,
-            anchor_sd,
+            fresh,
         )
         recognised = jnp.where(any_ret, new_declared, dec.candidate_set)
         step_info = info._replace(
