@@ -32,7 +32,8 @@ second fault; ``post_floor_means`` (a floor per fault, from ``low_floor_age`` st
 and ``settle_move`` (a fault settles only once its estimate stops growing) refine them
 (docs/faults.md, "Session 10"); ``retract_keep`` spares the challenger that led before a
 retraction hypothesis took the lead its restart at the floor (docs/faults.md, "Session
-12").  Since session 11 the defaults are the settings "S10a"
+12"), and ``settle_low`` brings a declaration's growth anchor down to the estimate when the
+fault settles (docs/faults.md, "Session 13").  Since session 11 the defaults are the settings "S10a"
 of docs/faults.md (all of these on but ``post_gap``; ``post_floor_means`` is per fault,
 so it is empty by default and set by the actuator's scenario files; :class:`EstSettings`).
 An undeclared hypothesis' own magnitude is kept ``>= floor_mean`` (and its standard
