@@ -136,6 +136,28 @@ def test_settle_move_restarts_a_fault_s_age_only_when_its_estimate_grows():
     np.testing.assert_allclose(new_anchor, [[0.6, 0.4, 0.5, 0.5]])
 
 
+def test_settle_low_lowers_only_a_declaration_s_anchor_on_the_step_it_settles():
+    """``settle_low`` (session 13): on the step a declared fault settles (age
+    ``settle_steps``), an anchor still at its declaration's value comes down to an estimate
+    nearer nominal (and is no longer the declaration's); nothing else moves."""
+    import jax.numpy as jnp
+
+    from uimm_jax.engine.uimm_est import EstSettings
+
+    s = EstSettings(walk_settled=3e-5, settle_steps=100, settle_move=5.0, settle_low=True)
+    # runs: settling with the declaration's anchor above the estimate / below it, settling
+    # with an anchor set by a move, settled long ago, still young, a negative magnitude
+    # settling, not declared
+    declared = jnp.asarray([[True] * 6 + [False]])
+    since = jnp.asarray([[100, 100, 100, 150, 50, 100, 100]], jnp.int32)
+    anchor = jnp.asarray([[0.5] * 5 + [-0.5, 0.5]])
+    fresh = jnp.asarray([[True, True, False, True, True, True, True]])
+    est = jnp.asarray([[0.45, 0.55, 0.45, 0.45, 0.45, -0.45, 0.45]])
+    new_anchor, new_fresh = rules.settle_low(s, declared, est, since, anchor, fresh)
+    np.testing.assert_allclose(new_anchor, [[0.45, 0.5, 0.5, 0.5, 0.5, -0.45, 0.5]])
+    np.testing.assert_array_equal(new_fresh, [[False, True, False, True, True, False, True]])
+
+
 def test_retract_keep_keeps_only_the_challenger_that_led_before_the_retraction_hypothesis():
     """``retract_keep`` (session 12): while "D - f_j" leads, the undeclared hypothesis that
     led just before it does not restart at its floor; the others do, and so does it once

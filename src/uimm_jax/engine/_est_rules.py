@@ -79,6 +79,28 @@ def moved(s: EstSettings, declared, est, est_sd, since, anchor):
     return jnp.where(grew, 0, since), jnp.where(far, est, anchor)
 
 
+def settle_low(s: EstSettings, declared, est, since, anchor, fresh):
+    """``settle_low``: a declaration's anchor comes down to the estimate when it settles.
+
+    :func:`moved` restarts a declared fault's age (its fast walk) when its estimate grows
+    ``settle_move`` standard deviations beyond ``anchor``.  The anchor is set at the
+    declaration, to the declaring hypothesis' estimate.  Declared above the truth early in
+    a ramp (valve wear at 0.155 for 0.134 in sim 1's run 53 of the 10 s ramps at 0.5), the
+    estimate falls back to the truth under the wide sd of ``reopen_rel`` (not a move: the
+    sd is wide), settles, lags its ramp, and must climb above the old anchor before any
+    growth counts; a look-alike (leakage) explains the lag first and is declared
+    (docs/faults.md, "Session 13").  Here, on the step a declared fault settles (age
+    ``since == settle_steps``) with its declaration's anchor (``fresh``), an anchor farther
+    from nominal than the estimate comes down to it, so that growth counts from where the
+    estimate settled.  An anchor set by a move is left alone: at the end of a fast ramp the
+    estimate settles from a wide walk, and an anchor lowered to it re-opens the walk by
+    noise (measured: sim 2's 1 s ramps lost valve wear's coverage).  Returns the new
+    ``anchor`` and ``fresh``.
+    """
+    down = declared & fresh & (since == s.settle_steps) & (jnp.abs(est) < jnp.abs(anchor))
+    return jnp.where(down, est, anchor), fresh & ~down
+
+
 def challenger(declared, log_mode_probs, chal):
     """``retract_keep``: the challenger kept over a spell of a retraction hypothesis.
 

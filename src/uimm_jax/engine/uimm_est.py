@@ -32,7 +32,8 @@ second fault; ``post_floor_means`` (a floor per fault, from ``low_floor_age`` st
 and ``settle_move`` (a fault settles only once its estimate stops growing) refine them
 (docs/faults.md, "Session 10"); ``retract_keep`` spares the challenger that led before a
 retraction hypothesis took the lead its restart at the floor (docs/faults.md, "Session
-12").  Since session 11 the defaults are the settings "S10a"
+12"), and ``settle_low`` brings a declaration's growth anchor down to the estimate when the
+fault settles (docs/faults.md, "Session 13").  Since session 11 the defaults are the settings "S10a"
 of docs/faults.md (all of these on but ``post_gap``; ``post_floor_means`` is per fault,
 so it is empty by default and set by the actuator's scenario files; :class:`EstSettings`).
 An undeclared hypothesis' own magnitude is kept ``>= floor_mean`` (and its standard
@@ -177,6 +178,7 @@ class UIMMEstDiagnoser(Diagnoser):
             jnp.full((F,) + tuple(runs), rules.gap_cap(s), jnp.int32),
             jnp.zeros((F,) + tuple(runs), dtype),
             jnp.zeros(tuple(runs), jnp.int32),
+            jnp.zeros((F,) + tuple(runs), bool),
         )
 
     def step(
@@ -253,10 +255,15 @@ class UIMMEstDiagnoser(Diagnoser):
         new_declared = jnp.where(retract, False, dec.declared)
         imm_state, cache = self._handover(imm_state, state.cache, winner, changed, new_declared)
         imm_state = rules.reopen(s, n, imm_state, new_declared & ~declared)
-        anchor = state.anchor
+        anchor, fresh = state.anchor, state.fresh
         if s.walk_settled and s.settle_move > 0:  # a fault still growing is not settled
+            if s.settle_low:  # a declaration's anchor comes down to a settled estimate
+                anchor, fresh = rules.settle_low(s, declared, est, since, anchor, fresh)
+                old = anchor
             since, anchor = rules.moved(s, declared, est, est_sd, since, anchor)
             anchor = jnp.where(new_declared & ~declared, est, anchor)
+            if s.settle_low:  # the anchor is the declaration's until it moves
+                fresh = jnp.where(anchor != old, False, fresh) | (new_declared & ~declared)
         if s.walk_settled:  # since: a declared fault's age; a retracted one is due again
             since = jnp.where(new_declared & ~declared, 0, since)
             since = jnp.where(retract, rules.gap_cap(s), since).astype(jnp.int32)
@@ -270,6 +277,7 @@ class UIMMEstDiagnoser(Diagnoser):
             since,
             anchor,
             chal,
+            fresh,
         )
         recognised = jnp.where(any_ret, new_declared, dec.candidate_set)
         step_info = info._replace(
