@@ -259,7 +259,7 @@ class UIMMEstDiagnoser(Diagnoser):
         if s.walk_settled and s.settle_move > 0:  # a fault still growing is not settled
             if s.settle_low:  # a declaration's anchor comes down to a settled estimate
                 anchor, fresh = rules.settle_low(s, declared, est, since, anchor, fresh)
-                old = anchor
+            old = anchor
             since, anchor = rules.moved(s, declared, est, est_sd, since, anchor)
             anchor = jnp.where(new_declared & ~declared, est, anchor)
             if s.settle_low:  # the anchor is the declaration's until it moves
