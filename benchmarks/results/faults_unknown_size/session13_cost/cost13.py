@@ -46,6 +46,19 @@ def batch_state(st, B):
     return jax.tree.map(lambda a: jnp.broadcast_to(a[..., None], a.shape + (B,)), st)
 
 
+def batch_data(sc, B, N):
+    """``(u, y)`` of the batch: seeds ``0..B-1``, the faults at 0.1 and 0.25 s, ``N`` steps."""
+    d64 = scenario_to_dict(sc)
+    d64["duration"] = N * sc.dt
+    for e, tt in zip(d64["events"], (0.1, 0.25), strict=True):
+        e["time"] = tt
+    su64 = setup_scenario(parse_scenario(d64), "uimm")
+    truths = [simulate_scenario(su64, s) for s in range(B)]
+    yb = jnp.asarray(np.stack([t["y"][:N] for t in truths], -1))
+    ub = jnp.asarray(np.stack([t["u"][:N] for t in truths], -1))
+    return ub, yb
+
+
 def variant(name):
     """``BASE[SUFFIX][:G1,G2,...][@C1,C2,...][-no-ABL[+ABL]]``.
 
@@ -102,14 +115,7 @@ def main():
     y1, u1 = jnp.asarray(truth["y"]), jnp.asarray(truth["u"])
     N1 = y1.shape[0]
     N = 4000
-    d64 = scenario_to_dict(sc)
-    d64["duration"] = N * sc.dt
-    for e, tt in zip(d64["events"], (0.1, 0.25), strict=True):
-        e["time"] = tt
-    su64 = setup_scenario(parse_scenario(d64), "uimm")
-    truths = [simulate_scenario(su64, s) for s in range(B)]
-    yb = jnp.asarray(np.stack([t["y"][:N] for t in truths], -1))
-    ub = jnp.asarray(np.stack([t["u"][:N] for t in truths], -1))
+    ub, yb = batch_data(sc, B, N)
 
     def run1(m):
         d, st, keys = diags[m]

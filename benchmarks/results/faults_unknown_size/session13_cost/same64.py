@@ -20,7 +20,6 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
@@ -28,13 +27,11 @@ sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parents[3] / "benchmarks"))
 
 from compact import CompactDiagnoser  # noqa: E402
-from cost13 import batch_state, variant  # noqa: E402
+from cost13 import batch_data, batch_state, variant  # noqa: E402
 
 from faults_unknown_size import _scenario  # noqa: E402
 from uimm_jax.engine.scan import ESTIMATE_OUTPUTS, FILTER_OUTPUTS, filter_chunk  # noqa: E402
-from uimm_jax.scenario.parse import parse_scenario  # noqa: E402
-from uimm_jax.scenario.write import scenario_to_dict  # noqa: E402
-from uimm_jax.studies.run import setup_scenario, simulate_scenario  # noqa: E402
+from uimm_jax.studies.run import setup_scenario  # noqa: E402
 
 
 def main():
@@ -42,14 +39,7 @@ def main():
     sc = _scenario(1, 1.0)
     est = setup_scenario(sc, "uimm-est")
     N = 4000
-    d64 = scenario_to_dict(sc)
-    d64["duration"] = N * sc.dt
-    for e, tt in zip(d64["events"], (0.1, 0.25), strict=True):
-        e["time"] = tt
-    su64 = setup_scenario(parse_scenario(d64), "uimm")
-    truths = [simulate_scenario(su64, s) for s in range(B)]
-    yb = jnp.asarray(np.stack([t["y"][:N] for t in truths], -1))
-    ub = jnp.asarray(np.stack([t["u"][:N] for t in truths], -1))
+    ub, yb = batch_data(sc, B, N)
     outs = {}
     for v in (va, vb):
         p = CompactDiagnoser(est.diagnoser, **variant(v))
