@@ -29,7 +29,9 @@ Options (fields of :class:`CompactDiagnoser`; the README says which were faster)
 declared re-centres from a table built once, each fault alone on a grid of ``2 relin``),
 ``table`` (the table looked up every step), ``per_model``, ``lean``, ``anchors``, ``lazy``
 (rebuilds per model, one tangent per model, caches at the prior and the floor, re-centring
-at use), ``ablate`` (timing ablations).
+at use), ``ablate`` (timing ablations); with ``table_rebuild`` (second helper):
+``computed_groups`` (the computed rebuilds' group sizes), ``fetch_whole`` (the fetch in one
+take of a packed table, no switch), ``hyp_rebuild`` (rebuild the hypothesis models alone).
 
 What it does not do: no tests; its outputs are not tuned (the declared magnitude comes
 from the bias filter, not from every model's joint estimate).
