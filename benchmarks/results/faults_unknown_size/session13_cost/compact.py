@@ -29,7 +29,9 @@ Options (fields of :class:`CompactDiagnoser`; the README says which were faster)
 declared re-centres from a table built once, each fault alone on a grid of ``2 relin``),
 ``table`` (the table looked up every step), ``per_model``, ``lean``, ``anchors``, ``lazy``
 (rebuilds per model, one tangent per model, caches at the prior and the floor, re-centring
-at use), ``ablate`` (timing ablations).
+at use), ``ablate`` (timing ablations); with ``table_rebuild`` (second helper):
+``computed_groups`` (the computed rebuilds' group sizes), ``fetch_whole`` (the fetch in one
+take of a packed table, no switch), ``hyp_rebuild`` (rebuild the hypothesis models alone).
 
 What it does not do: no tests; its outputs are not tuned (the declared magnitude comes
 from the bias filter, not from every model's joint estimate).
@@ -199,6 +201,18 @@ class CompactDiagnoser:
     """(run-level cache) a rebuild of a run with nothing declared fetches its hypotheses'
     caches from the table (each fault alone, grid ``2 relin``) instead of computing them;
     the step itself is unchanged (expansion around ``a0``, here the grid point)."""
+    fetch_whole: bool = False
+    """(``table_rebuild``) the table fetch without a switch or a gather of runs: one take of
+    a packed table (every leaf of a row side by side) for every run of the batch, kept where
+    the run needs it (selects only); the same numbers as the gathered fetch."""
+    hyp_rebuild: bool = False
+    """(``table_rebuild``) a computed rebuild of a run whose change is only in its
+    hypotheses' own slots (no change of D, no declared magnitude moved past ``relin`` in
+    any model) computes the ``F - 1`` hypothesis models "D + f_j" (at most; padded), not
+    all ``M``: model 0 and the retraction hypotheses keep their expansion (within
+    ``relin``), so the numbers differ from ``compactcr``'s within the expansion's error."""
+    computed_groups: tuple | None = None
+    """(``table_rebuild``) sizes of the gathered computed rebuilds (default ``groups``)."""
     lazy: bool = False
     """(``lean``) re-centre an own slot when it is used (after the restarts, before the
     predict), not after the update: a slot that restarts next step is not rebuilt."""
@@ -240,7 +254,54 @@ class CompactDiagnoser:
         z = jnp.zeros((F, 1))
         nom, _ = jax.jit(lambda z: _lean_prepare(est, z > 0, z, z))(z)  # model 0, nothing declared
         self.__dict__["_nominal"] = jax.tree.map(lambda x: np.asarray(x[..., 0]), nom)
-        return lo, h, K, jax.tree.map(tolead, b), jax.tree.map(tolead, jac)
+        tb, tj = jax.tree.map(tolead, b), jax.tree.map(tolead, jac)
+        leaves = jax.tree.leaves(tb) + jax.tree.leaves(tj)
+        self.__dict__["_packed"] = np.concatenate([x.reshape(K * F, -1) for x in leaves], 1)
+        return lo, h, K, tb, tj
+
+    def _fetch_whole(self, sm, need_t, c):
+        """``fetch_whole``: the table fetch of every run (one take of the packed table), kept
+        on the runs in ``need_t``; ``sm (M, *runs)``.  The numbers of :meth:`_table_fetch`."""
+        F, M = self.num_faults, self.num_models
+        lo, h, K, tb, tj = self._table
+        packed = self.__dict__["_packed"]
+        nom = self.__dict__["_nominal"]
+        a = sm[1:]  # (F, *runs)
+        runs = a.shape[1:]
+        nr = len(runs)
+        idx = jnp.clip(jnp.round((a - lo) / h).astype(jnp.int32), 0, K - 1)
+        flat = idx * F + np.arange(F).reshape((F,) + (1,) * nr)
+        rows = jnp.take(packed, flat.reshape(-1), axis=0)  # (F R, L): one gather
+        rows = jnp.moveaxis(rows, 0, -1).reshape((rows.shape[1], F) + runs)  # (L, F, *runs)
+        defs = jax.tree.leaves(tb) + jax.tree.leaves(tj)
+        parts, o = [], 0
+        for x in defs:  # (*leaf, F, *runs)
+            size = int(np.prod(x.shape[1:]))
+            parts.append(rows[o : o + size].reshape(x.shape[1:] + (F,) + runs))
+            o += size
+        nb_ = len(jax.tree.leaves(tb))
+        tb_f = jax.tree.unflatten(jax.tree.structure(tb), parts[:nb_])
+        tj_f = jax.tree.unflatten(jax.tree.structure(tj), parts[nb_:])
+        cat = lambda first, rest: jnp.concatenate([first, rest], axis=rest.ndim - nr - 1)
+        base = jax.tree.map(
+            lambda n0, x: cat(
+                jnp.broadcast_to(n0.reshape(n0.shape + (1,) * (nr + 1)), n0.shape + (1,) + runs), x
+            ),
+            nom,
+            tb_f,
+        )
+        jt = jax.tree.map(
+            lambda x: cat(jnp.zeros(x.shape[: x.ndim - nr - 1] + (1,) + runs, x.dtype), x), tj_f
+        )
+        models = np.arange(M).reshape((M,) + (1,) * nr)
+        jac = tuple(
+            jax.tree.map(lambda x, k=k: jnp.where(models == k + 1, x, 0.0), jt) for k in range(F)
+        )
+        own = rules.own_slots(F, nr)
+        a0 = jnp.where(own, (lo + h * idx)[:, None], 1.0).astype(sm.dtype)  # (F, M, *runs)
+        use = jnp.broadcast_to(own, (F, M) + runs)
+        fresh = AugCache(base, jac, a0, use)
+        return jax.tree.map(gather.per_run(need_t), fresh, c)
 
     def _table_fetch(self, sm):
         """An :class:`AugCache` of runs with nothing declared, from the table: ``sm (M, g)``."""
@@ -701,15 +762,48 @@ class CompactDiagnoser:
             )
         return LeanCache(b, j, a0, ahat0, jac0, sets, anchor)
 
-    def _tr_switch(self, rebuild, operand, need, new_declared):
+    def _hyp_cache(self, new_declared, a0, old):
+        """The cache with its hypothesis models "D + f_j" recomputed at ``a0`` (``F - 1``
+        model slots per run, gathered along the model axis; the others kept from ``old``)."""
+        est = self.est
+        F, M = self.num_faults, self.num_models
+        nr = new_declared.ndim - 1
+        P = F - 1
+        hm = jnp.any(rules.own_slots(F, nr) & ~new_declared[:, None], axis=0)  # (M, *runs)
+        pos = jnp.cumsum(hm.astype(jnp.int32), axis=0) - hm  # rank of a hypothesis model
+        mm = np.arange(M).reshape((M,) + (1,) * nr)
+        slots = np.arange(P).reshape((P, 1) + (1,) * nr)
+        pick = hm[None] & (pos[None] == slots)  # (P, M, *runs)
+        idx = jnp.argmax(pick, axis=1)  # (P, *runs): the model in each slot
+        valid = jnp.any(pick, axis=1)
+        sets = est.model_sets(new_declared)  # (F, M, *runs)
+        take = lambda x: jnp.take_along_axis(x, jnp.broadcast_to(idx[None], (F,) + idx.shape), 1)
+        fresh = est.aug.prepare(take(sets), take(a0), est.settings.tangent_order)
+        hit = [(idx[p] == mm) & valid[p] for p in range(P)]  # (M, *runs) each
+
+        def back(new, o):  # new (..., P, *runs) -> (..., M, *runs), kept where no slot
+            ax = new.ndim - nr - 1
+            out = o
+            for p in range(P):
+                out = jnp.where(hit[p], jnp.expand_dims(jnp.take(new, p, axis=ax), ax), out)
+            return out
+
+        return AugCache(
+            jax.tree.map(back, fresh.base, old.base),
+            tuple(jax.tree.map(back, j, o) for j, o in zip(fresh.jac, old.jac, strict=True)),
+            jnp.where(jnp.any(jnp.stack(hit), axis=0)[None], a0, old.a0),
+            old.use,
+        )
+
+    def _tr_switch(self, rebuild, operand, need, new_declared, full=None):
         """``table_rebuild``: hand-over, then gathered computed rebuilds of the runs with a
         declared fault and gathered table fetches of the others."""
         est, s = self.est, self.est.settings
         n, F = est.dyn.n, self.num_faults
         lo, h, K, _, _ = self._table
 
-        def gsw(fn, needx, args, c):
-            groups = [g for g in self.groups if g < needx.size]
+        def gsw(fn, needx, args, c, sizes=self.groups):
+            groups = [g for g in sizes if g < needx.size]
             count = jnp.sum(needx)
             br = jnp.where(count == 0, 0, 1 + sum((count > g).astype(jnp.int32) for g in groups))
             whole = lambda c: jax.tree.map(gather.per_run(needx), fn(*args), c)
@@ -728,8 +822,16 @@ class CompactDiagnoser:
                 need_p = jnp.zeros_like(need_p)
             hyp2 = rules.own_slots(F, new_declared.ndim - 1) & ~new_declared[:, None]
             a0 = jnp.where(hyp2, sm[None], ahat2[:, None])
-            c = gsw(est._cache, need_p, (new_declared, a0), c)
-            c = gsw(self._table_fetch, need_t, (sm,), c)
+            cg = self.computed_groups or self.groups
+            if self.hyp_rebuild:  # runs whose hypotheses alone moved: those models alone
+                need_h = need_p & ~full & jnp.any(new_declared, axis=0)
+                need_p = need_p & ~need_h
+                c = gsw(self._hyp_cache, need_h, (new_declared, a0, c), c, cg)
+            c = gsw(est._cache, need_p, (new_declared, a0), c, cg)
+            if self.fetch_whole:
+                c = self._fetch_whole(sm, need_t, c)
+            else:
+                c = gsw(self._table_fetch, need_t, (sm,), c)
             return st2, c, ahat2, Pb2, V2
 
         del s
@@ -744,6 +846,7 @@ class CompactDiagnoser:
         own = rules.own_slots(F, nr)
         hyp = own & ~declared[:, None]
         matters = st.log_mode_probs >= np.log(0.01)
+        full = None  # (table_rebuild + hyp_rebuild) runs whose declared magnitudes moved
         if self.lean:  # own slot moved (model matters), or a declared magnitude (all)
             hyp_m = jnp.any(hyp, axis=0)
             own_drift = jnp.where(hyp_m, jnp.abs(st.mean[n] - cache.a0[0]), 0.0)
@@ -765,6 +868,7 @@ class CompactDiagnoser:
             a_eff = jnp.where(hyp, st.mean[n][None], ahat[:, None])
             drift = jnp.where(cache.use, jnp.abs(a_eff - cache.a0), 0.0)
             need = changed | jnp.any((drift > s.relin) & matters, axis=(0, 1))
+            full = changed | jnp.any((drift > s.relin) & ~hyp, axis=(0, 1))  # declared moved
             if self.table:  # nothing declared (after this step) and every slot on the table
                 lo, h, K, _, _ = self._table
                 a = st.mean[n, 1:]
@@ -844,7 +948,7 @@ class CompactDiagnoser:
 
         operand = (st, cache, ahat, Pb, V)
         if self.table_rebuild:
-            return self._tr_switch(rebuild, operand, need, new_declared)
+            return self._tr_switch(rebuild, operand, need, new_declared, full)
         groups = [g for g in self.groups if g < need.size]
         if not groups:
             return jax.lax.cond(jnp.any(need), rebuild, lambda o: o, operand)

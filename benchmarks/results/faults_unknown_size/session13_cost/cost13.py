@@ -46,16 +46,33 @@ def batch_state(st, B):
     return jax.tree.map(lambda a: jnp.broadcast_to(a[..., None], a.shape + (B,)), st)
 
 
+def batch_data(sc, B, N):
+    """``(u, y)`` of the batch: seeds ``0..B-1``, the faults at 0.1 and 0.25 s, ``N`` steps."""
+    d64 = scenario_to_dict(sc)
+    d64["duration"] = N * sc.dt
+    for e, tt in zip(d64["events"], (0.1, 0.25), strict=True):
+        e["time"] = tt
+    su64 = setup_scenario(parse_scenario(d64), "uimm")
+    truths = [simulate_scenario(su64, s) for s in range(B)]
+    yb = jnp.asarray(np.stack([t["y"][:N] for t in truths], -1))
+    ub = jnp.asarray(np.stack([t["u"][:N] for t in truths], -1))
+    return ub, yb
+
+
 def variant(name):
-    """``BASE[SUFFIX][:G1,G2,...][-no-ABL[+ABL]]``.
+    """``BASE[SUFFIX][:G1,G2,...][@C1,C2,...][-no-ABL[+ABL]]``.
 
     BASE: ``compact`` (rebuilds per run), ``pm`` (per model x run pair), ``lean`` (one
     tangent per model).  SUFFIX letters: ``c`` the bias filter under ``lax.cond``, ``t`` the
     table looked up every step while nothing is declared, ``r`` the table fetched at
-    rebuilds only.  Groups ``G``: default 8, 32 (``compact``), 1, 8, 32 (the others).
+    rebuilds only, ``w`` (with ``r``) that fetch for the whole batch in one take of a
+    packed table, no switch, ``h`` (with ``r``) computed rebuilds of the hypothesis models
+    alone when nothing else moved.  Groups ``G``: default 8, 32 (``compact``), 1, 8, 32 (the
+    others); ``@C``: sizes of the computed rebuilds' groups (with ``r``; default ``G``).
     Ablations: ``rebuild``, ``bias``.
     """
     head, _, abl = name.partition("-no-")
+    head, _, cgroups = head.partition("@")
     base, _, groups = head.partition(":")
     kw = {"ablate": frozenset(abl.split("+")) if abl else frozenset()}
     for prefix in ("compact", "pm", "lean"):
@@ -64,8 +81,11 @@ def variant(name):
             break
     else:
         raise ValueError(name)
-    assert set(suffix) <= set("ctr"), name
+    assert set(suffix) <= set("ctrwh"), name
     kw |= {"bias_cond": "c" in suffix, "table": "t" in suffix, "table_rebuild": "r" in suffix}
+    kw |= {"fetch_whole": "w" in suffix, "hyp_rebuild": "h" in suffix}
+    if cgroups:
+        kw["computed_groups"] = tuple(int(g) for g in cgroups.split(","))
     if base == "pm":
         kw |= {"per_model": True, "groups": (1, 8, 32)}
     elif base == "lean":
@@ -95,14 +115,7 @@ def main():
     y1, u1 = jnp.asarray(truth["y"]), jnp.asarray(truth["u"])
     N1 = y1.shape[0]
     N = 4000
-    d64 = scenario_to_dict(sc)
-    d64["duration"] = N * sc.dt
-    for e, tt in zip(d64["events"], (0.1, 0.25), strict=True):
-        e["time"] = tt
-    su64 = setup_scenario(parse_scenario(d64), "uimm")
-    truths = [simulate_scenario(su64, s) for s in range(B)]
-    yb = jnp.asarray(np.stack([t["y"][:N] for t in truths], -1))
-    ub = jnp.asarray(np.stack([t["u"][:N] for t in truths], -1))
+    ub, yb = batch_data(sc, B, N)
 
     def run1(m):
         d, st, keys = diags[m]
