@@ -19,9 +19,21 @@ from uimm_jax.studies.sweep import run_sweep  # noqa: E402
 
 def main(sim, mags):
     a, b = rf.FIRST[sim]
-    case = {"name": f"sim{sim}", "events": [{"fault": a, "time": 0.5}, {"fault": b, "time": rf.ONSET2}]}
-    res = run_sweep(rf._scenario(sim), runs=64, methods=["uimm-est"], cases=[case], seed=0,
-                    batch=128, magnitudes=mags, ramps=[rf.RAMP], fault_free=False)
+    case = {
+        "name": f"sim{sim}",
+        "events": [{"fault": a, "time": 0.5}, {"fault": b, "time": rf.ONSET2}],
+    }
+    res = run_sweep(
+        rf._scenario(sim),
+        runs=64,
+        methods=["uimm-est"],
+        cases=[case],
+        seed=0,
+        batch=128,
+        magnitudes=mags,
+        ramps=[rf.RAMP],
+        fault_free=False,
+    )
     for cell, s in zip(res.cells, res.summaries, strict=True):
         c = cell.index
         ret = np.asarray(res.estimates["retract_step"][c])  # (runs, F), -1 for none
@@ -30,7 +42,8 @@ def main(sim, mags):
         wrong = (ret >= 0) & (on >= 0) & (ret >= on)
         print(f"mag {cell.magnitude}: wrong_retractions {s.get('wrong_retractions')}")
         for r in np.nonzero(wrong.any(-1))[0]:
-            print(f"  run {r}: onset {on[r].tolist()} decl {dec[r].tolist()} retract {ret[r].tolist()}")
+            steps = f"onset {on[r].tolist()} decl {dec[r].tolist()} retract {ret[r].tolist()}"
+            print(f"  run {r}: {steps}")
 
 
 if __name__ == "__main__":
