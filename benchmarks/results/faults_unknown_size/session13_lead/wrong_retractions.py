@@ -2,7 +2,8 @@
 
 Usage (repository root, ``PYTHONPATH=src``): ``wrong_retractions.py SIM MAG [MAG ...]``.
 The ``ramps`` part's case (64 runs, seed 0, the defaults), as ``session11_ramp2/ramp_false.py``
-builds it; prints per run the declaration, onset and retraction steps of each fault.  A run
+builds it; prints per run the onset, first declaration and last retraction steps of each fault
+and how many times it was declared (declared once and retracted: absent at the end).  A run
 then traces with ``ramp_false.py one SIM MAG RUN``.
 """
 
@@ -39,11 +40,12 @@ def main(sim, mags):
         ret = np.asarray(res.estimates["retract_step"][c])  # (runs, F), -1 for none
         on = np.asarray(res.onset_step[c])
         dec = np.asarray(res.decl_step[c])
+        count = np.asarray(res.estimates["declarations"][c])  # (runs, F): times declared
         wrong = (ret >= 0) & (on >= 0) & (ret >= on)
         print(f"mag {cell.magnitude}: wrong_retractions {s.get('wrong_retractions')}")
         for r in np.nonzero(wrong.any(-1))[0]:
             steps = f"onset {on[r].tolist()} decl {dec[r].tolist()} retract {ret[r].tolist()}"
-            print(f"  run {r}: {steps}")
+            print(f"  run {r}: {steps} times declared {count[r].tolist()}")
 
 
 if __name__ == "__main__":
