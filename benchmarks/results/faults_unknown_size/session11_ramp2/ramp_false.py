@@ -61,14 +61,14 @@ def _scenario(sim, events=None):
     return parse_scenario(d, source=f"paper_sim{sim}_tuned")
 
 
-def sweep(sim, tag, mags, sets):
+def run_cells(sim, mags):
+    """The ``ramps`` part's case of ``sim`` at each magnitude: 64 runs, seed 0 (a sweep result)."""
     a, b = FIRST[sim]
     case = {
         "name": f"sim{sim}",
         "events": [{"fault": a, "time": 0.5}, {"fault": b, "time": ONSET2}],
     }
-    t0 = time.perf_counter()
-    res = run_sweep(
+    return run_sweep(
         _scenario(sim),
         runs=64,
         methods=["uimm-est"],
@@ -79,6 +79,11 @@ def sweep(sim, tag, mags, sets):
         ramps=[RAMP],
         fault_free=False,
     )
+
+
+def sweep(sim, tag, mags, sets):
+    t0 = time.perf_counter()
+    res = run_cells(sim, mags)
     drop = ("confusion", "state_rmse", "health", "detection_probability_ci")
     out = []
     for cell, s in zip(res.cells, res.summaries, strict=True):

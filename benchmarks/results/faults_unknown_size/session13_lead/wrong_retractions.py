@@ -15,26 +15,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "session11_ramp2"))
 import ramp_false as rf  # noqa: E402
 
-from uimm_jax.studies.sweep import run_sweep  # noqa: E402
-
 
 def main(sim, mags):
-    a, b = rf.FIRST[sim]
-    case = {
-        "name": f"sim{sim}",
-        "events": [{"fault": a, "time": 0.5}, {"fault": b, "time": rf.ONSET2}],
-    }
-    res = run_sweep(
-        rf._scenario(sim),
-        runs=64,
-        methods=["uimm-est"],
-        cases=[case],
-        seed=0,
-        batch=128,
-        magnitudes=mags,
-        ramps=[rf.RAMP],
-        fault_free=False,
-    )
+    res = rf.run_cells(sim, mags)
     for cell, s in zip(res.cells, res.summaries, strict=True):
         c = cell.index
         ret = np.asarray(res.estimates["retract_step"][c])  # (runs, F), -1 for none
