@@ -158,6 +158,35 @@ def test_settle_low_lowers_only_a_declaration_s_anchor_on_the_step_it_settles():
     np.testing.assert_array_equal(new_fresh, [[False, True, False, True, True, False, True]])
 
 
+def test_retract_young_holds_a_settled_fault_s_retraction_only_while_another_grows():
+    """``retract_young`` (session 14): a settled declared fault (age ``>= settle_steps``) is
+    held back from a retraction by its hypothesis while another declared fault is younger
+    than ``retract_young``; a lone fault, a young one, or one beside an old fault is not,
+    and 0 turns the rule off (``gap_cap`` then as before)."""
+    import jax.numpy as jnp
+
+    from uimm_jax.engine.uimm_est import EstSettings
+
+    s = EstSettings(settle_steps=100, retract_young=1000, low_floor_age=500)
+    # runs: two declared (old + young), two declared (both old), two declared (both
+    # young), one declared and old (an intermittent fault), a young third fault undeclared
+    declared = jnp.asarray(
+        [
+            [True, True, True, True, True],
+            [True, True, True, False, False],
+            [False, False, False, False, False],
+        ]
+    )
+    since = jnp.asarray(
+        [[5000, 5000, 50, 5000, 5000], [300, 1000, 50, 10, 5000], [9, 9, 9, 9, 9]], jnp.int32
+    )
+    held = rules.retract_young(s, declared, since)
+    want = [[True, False, False, False, False], [False, False, False, False, False], [False] * 5]
+    np.testing.assert_array_equal(held, want)
+    assert rules.gap_cap(s) == 1000  # since counts far enough to see the other grow
+    assert rules.gap_cap(s._replace(retract_young=0)) == 500  # low_floor_age, as before
+
+
 def test_retract_keep_keeps_only_the_challenger_that_led_before_the_retraction_hypothesis():
     """``retract_keep`` (session 12): while "D - f_j" leads, the undeclared hypothesis that
     led just before it does not restart at its floor; the others do, and so does it once

@@ -169,6 +169,11 @@ class EstSettings(NamedTuple):
             nominal, so that a fault declared above the truth early in a ramp does not lag
             it unseen (see ``_est_rules.settle_low``; docs/faults.md, "Session 13";
             default true since then).
+        retract_young: with ``walk_settled`` and ``settle_move``, a settled declared fault
+            is not retracted by its retraction hypothesis while another declared fault has
+            grown within this many steps (its age below it): the growing fault's lag is
+            then what "D - f_i" explains (see ``_est_rules.retract_young``; the ``low``
+            rule still retracts; docs/faults.md, "Session 14"; 0: off).
     """
 
     walk: float = 1e-3
@@ -204,6 +209,7 @@ class EstSettings(NamedTuple):
     steps_dt: float = 1e-4
     retract_keep: bool = True
     settle_low: bool = True
+    retract_young: int = 0
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -238,6 +244,7 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "low_floor_age": (0, False, "steps; 0: off"),
     "declare_rel": (0.0, False, "a fraction of the estimate; 0: off"),
     "steps_dt": (0.0, False, "seconds; 0: off, counts are samples"),
+    "retract_young": (0, False, "steps; 0: off"),
 }
 _HIGH = {"restart_below": 1.0, "tangent_order": 12}
 
@@ -367,7 +374,7 @@ def est_value_from_text(name: str, text: str) -> Any:
 # -- sampling time: the one place where the step counts meet the plant's dt ------------
 
 COUNTED_SETTINGS = ("restart_gap", "floor_gap", "post_gap", "settle_steps", "post_floor_gap")
-COUNTED_SETTINGS += ("retract_hold", "low_floor_age")
+COUNTED_SETTINGS += ("retract_hold", "low_floor_age", "retract_young")
 """The settings counted in steps, which :func:`settings_at_dt` converts."""
 
 
@@ -375,9 +382,10 @@ def settings_at_dt(settings: EstSettings, dt: Any) -> EstSettings:
     """``settings`` (given at ``steps_dt``) as the rules use them at sampling time ``dt``.
 
     Each setting counted in steps (``restart_gap``, ``floor_gap``, ``post_gap``,
-    ``settle_steps``, ``post_floor_gap``, ``retract_hold``, ``low_floor_age``) becomes
-    ``round(count * steps_dt / dt)`` samples (halves up), at least 1 unless it was 0
-    (off), and ``steps_dt`` becomes ``dt`` (the result is its own conversion at ``dt``).
+    ``settle_steps``, ``post_floor_gap``, ``retract_hold``, ``low_floor_age``,
+    ``retract_young``) becomes ``round(count * steps_dt / dt)`` samples (halves up), at
+    least 1 unless it was 0 (off), and ``steps_dt`` becomes ``dt`` (the result is its own
+    conversion at ``dt``).
     With ``steps_dt == dt`` or ``steps_dt = 0`` it returns ``settings`` itself: the same
     numbers, bit for bit.  Not converted: the random walks (per sample; scaling them by
     ``sqrt(dt / steps_dt)`` was measured worse, :class:`EstSettings`) and the decision's
