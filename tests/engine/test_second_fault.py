@@ -100,7 +100,7 @@ def test_post_floor_means_bound_each_challenger_at_its_own_floor():
     # ``since`` must count that far (it stops at the largest gap), else the floors never hold
     from uimm_jax.engine._est_rules import gap_cap
 
-    old = s._replace(walk_settled=3e-5, settle_steps=3000, low_floor_age=8000)
+    old = s._replace(walk_settled=3e-5, settle_steps=3000, low_floor_age=8000, retract_young=0)
     assert gap_cap(old) == 8000 and gap_cap(old._replace(low_floor_age=0)) == 3000
 
 

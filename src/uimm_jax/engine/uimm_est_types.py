@@ -58,7 +58,9 @@ class EstSettings(NamedTuple):
     (session 13) lowers the 10 s ramps at 0.5 to 0 false runs in both sims (sim 1 0, 0, 0,
     0, 0 and sim 2 1, 0, 0, 0, 0 at 0.3-3) and keeps every other acceptance cell within
     its line (1 s ramps, intermittent and paper unchanged; abrupt sizes' coverage moves
-    by up to 5 points, all >= 94 %).
+    by up to 5 points, all >= 94 %).  ``retract_young`` (session 14) lowers the retractions
+    of a present valve wear on sim 2's 10 s ramps at 2 and 3 from 10 and 3 runs per 64 to
+    2 and 0 and leaves every other acceptance cell as it was, bit for bit.
     **Settings counted in steps** (the gaps, ``settle_steps``, ``retract_hold``,
     ``low_floor_age``) were measured on the actuator at ``dt`` = 1e-4 s and are given for
     a plant sampled every ``steps_dt`` seconds (default 1e-4): on a plant sampled every
@@ -173,7 +175,8 @@ class EstSettings(NamedTuple):
             is not retracted by its retraction hypothesis while another declared fault has
             grown within this many steps (its age below it): the growing fault's lag is
             then what "D - f_i" explains (see ``_est_rules.retract_young``; the ``low``
-            rule still retracts; docs/faults.md, "Session 14"; 0: off).
+            rule still retracts; docs/faults.md, "Session 14"; 0: off; default 10000,
+            1 s at ``steps_dt``, the mode probabilities' memory ``1 / (1 - stay)``).
     """
 
     walk: float = 1e-3
@@ -209,7 +212,7 @@ class EstSettings(NamedTuple):
     steps_dt: float = 1e-4
     retract_keep: bool = True
     settle_low: bool = True
-    retract_young: int = 0
+    retract_young: int = 10000
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
