@@ -158,18 +158,20 @@ def test_settle_low_lowers_only_a_declaration_s_anchor_on_the_step_it_settles():
     np.testing.assert_array_equal(new_fresh, [[False, True, False, True, True, False, True]])
 
 
-def test_retract_young_holds_a_settled_fault_s_retraction_only_while_another_grows():
-    """``retract_young`` (session 14): a settled declared fault (age ``>= settle_steps``) is
-    held back from a retraction by its hypothesis while another declared fault is younger
-    than ``retract_young``; a lone fault, a young one, or one beside an old fault is not,
-    and 0 turns the rule off (``gap_cap`` then as before)."""
+def test_retract_young_holds_an_old_fault_s_retraction_only_while_another_grows():
+    """``retract_young`` (session 14): a declared fault that has not grown for
+    ``retract_young`` steps (its age ``since``) is held back from a retraction by its
+    hypothesis while another declared fault is younger than that; a lone fault, two old
+    ones, or a fault that is young itself (settled, but declared or grown lately: a new
+    fault that ends while the older ones' estimates moved at its onset) is not, and 0
+    turns the rule off (``gap_cap`` then as before)."""
     import jax.numpy as jnp
 
     from uimm_jax.engine.uimm_est import EstSettings
 
     s = EstSettings(settle_steps=100, retract_young=1000, low_floor_age=500)
-    # runs: two declared (old + young), two declared (both old), two declared (both
-    # young), one declared and old (an intermittent fault), a young third fault undeclared
+    # runs: old + young, both old, settled but young + young, one declared and old (an
+    # intermittent fault), a young third fault undeclared
     declared = jnp.asarray(
         [
             [True, True, True, True, True],
@@ -178,7 +180,7 @@ def test_retract_young_holds_a_settled_fault_s_retraction_only_while_another_gro
         ]
     )
     since = jnp.asarray(
-        [[5000, 5000, 50, 5000, 5000], [300, 1000, 50, 10, 5000], [9, 9, 9, 9, 9]], jnp.int32
+        [[1000, 1000, 500, 1000, 1000], [300, 1000, 50, 10, 1000], [9, 9, 9, 9, 9]], jnp.int32
     )
     held = rules.retract_young(s, declared, since)
     want = [[True, False, False, False, False], [False, False, False, False, False], [False] * 5]

@@ -102,23 +102,26 @@ def settle_low(s: EstSettings, declared, est, since, anchor, fresh):
 
 
 def retract_young(s: EstSettings, declared, since) -> jax.Array:
-    """``retract_young``: settled faults whose retraction hypothesis does not count now.
+    """``retract_young``: old faults whose retraction hypothesis does not count now.
 
     With ``walk_settled`` and ``settle_move``, a declared fault's ``since`` is its age, and
     it restarts whenever its estimate grows.  While another declared fault has grown within
-    the last ``retract_young`` steps (its ``since`` below that), a settled fault (``since >=
-    settle_steps``) is not retracted by its retraction hypothesis "D - f_i" winning: the
-    growing fault's estimate lags its ramp and, on air in oil's log scale, the lag is partly
-    explained by removing a look-alike that cancels it (valve wear in the input gain), so
-    "D - f_i" then measures the other fault's lag, not f_i's end (docs/faults.md, "Session
-    14": on sim 2's 10 s ramps at 2-3 valve wear at 2-3x its size was retracted so, and
-    never declared again).  The ``low`` rule (the estimate below ``retract_below``) still
-    retracts it, and a lone declared fault (an intermittent one) is never held.  Returns
-    ``(F, *runs)`` bool, the faults whose retraction hypothesis is held back.
+    the last ``retract_young`` steps (its ``since`` below that), an old fault, one that has
+    not grown for that long itself, is not retracted by its retraction hypothesis "D - f_i"
+    winning: the growing fault's estimate lags its ramp and, on air in oil's log scale, the
+    lag is partly explained by removing a look-alike that cancels it (valve wear in the
+    input gain), so "D - f_i" then measures the other fault's lag, not f_i's end
+    (docs/faults.md, "Session 14": on sim 2's 10 s ramps at 2-3 valve wear at 2-3x its size
+    was retracted so, and never declared again).  A fault that is young itself is not held:
+    a new fault's onset moves the older faults' estimates (their age restarts), and its own
+    end must still be retracted at once (the user plant's three sensor biases).  The ``low``
+    rule (the estimate below ``retract_below``) still retracts, and a lone declared fault
+    (an intermittent one) is never held.  Returns ``(F, *runs)`` bool, the faults whose
+    retraction hypothesis is held back.
     """
     young = (declared & (since < s.retract_young)).astype(jnp.int32)
     others = jnp.sum(young, axis=0) - young  # other declared faults still growing
-    return declared & (since >= s.settle_steps) & (others > 0)
+    return declared & (since >= s.retract_young) & (others > 0)
 
 
 def challenger(declared, log_mode_probs, chal):

@@ -33,7 +33,7 @@ and ``settle_move`` (a fault settles only once its estimate stops growing) refin
 (docs/faults.md, "Session 10"); ``retract_keep`` spares the challenger that led before a
 retraction hypothesis took the lead its restart at the floor (docs/faults.md, "Session
 12"), ``settle_low`` brings a declaration's growth anchor down to the estimate when the
-fault settles (docs/faults.md, "Session 13"), and ``retract_young`` keeps a settled fault's
+fault settles (docs/faults.md, "Session 13"), and ``retract_young`` keeps an old fault's
 retraction hypothesis from retracting it while another declared fault still grows
 (docs/faults.md, "Session 14").  Since session 11 the defaults are the settings "S10a"
 of docs/faults.md (all of these on but ``post_gap``; ``post_floor_means`` is per fault,
@@ -51,7 +51,7 @@ hypotheses at the bound, where neither can be declared).
   ``declare_rel``, 0.15 by default, a first declaration also needs the estimate's sd at most
   ``declare_rel`` of it; docs/faults.md, "Session 11");
 * retract ``j`` when ``D - f_j`` wins in the same way (with ``retract_young``, for a
-  settled ``j`` only while no other declared fault has grown lately), or when model 0's
+  ``j`` that has not grown lately, only while no other declared fault has), or when model 0's
   estimate of ``a_j`` stays below ``retract_below`` for ``hold`` samples (the estimate
   returned to nominal).
 

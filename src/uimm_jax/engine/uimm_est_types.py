@@ -171,12 +171,12 @@ class EstSettings(NamedTuple):
             nominal, so that a fault declared above the truth early in a ramp does not lag
             it unseen (see ``_est_rules.settle_low``; docs/faults.md, "Session 13";
             default true since then).
-        retract_young: with ``walk_settled`` and ``settle_move``, a settled declared fault
-            is not retracted by its retraction hypothesis while another declared fault has
-            grown within this many steps (its age below it): the growing fault's lag is
-            then what "D - f_i" explains (see ``_est_rules.retract_young``; the ``low``
-            rule still retracts; docs/faults.md, "Session 14"; 0: off; default 10000,
-            1 s at ``steps_dt``, the mode probabilities' memory ``1 / (1 - stay)``).
+        retract_young: with ``walk_settled`` and ``settle_move``, a declared fault that has
+            not grown for this many steps (its age) is not retracted by its retraction
+            hypothesis while another declared fault has grown within them: the growing
+            fault's lag is then what "D - f_i" explains (see ``_est_rules.retract_young``;
+            the ``low`` rule still retracts; docs/faults.md, "Session 14"; 0: off; default
+            10000, 1 s at ``steps_dt``, the mode probabilities' memory ``1 / (1 - stay)``).
     """
 
     walk: float = 1e-3
