@@ -100,7 +100,7 @@ def test_post_floor_means_bound_each_challenger_at_its_own_floor():
     # ``since`` must count that far (it stops at the largest gap), else the floors never hold
     from uimm_jax.engine._est_rules import gap_cap
 
-    old = s._replace(walk_settled=3e-5, settle_steps=3000, low_floor_age=8000)
+    old = s._replace(walk_settled=3e-5, settle_steps=3000, low_floor_age=8000, retract_young=0)
     assert gap_cap(old) == 8000 and gap_cap(old._replace(low_floor_age=0)) == 3000
 
 
@@ -156,6 +156,37 @@ def test_settle_low_lowers_only_a_declaration_s_anchor_on_the_step_it_settles():
     new_anchor, new_fresh = rules.settle_low(s, declared, est, since, anchor, fresh)
     np.testing.assert_allclose(new_anchor, [[0.45, 0.5, 0.5, 0.5, 0.5, -0.45, 0.5]])
     np.testing.assert_array_equal(new_fresh, [[False, True, False, True, True, False, True]])
+
+
+def test_retract_young_holds_an_old_fault_s_retraction_only_while_another_grows():
+    """``retract_young`` (session 14): a declared fault that has not grown for
+    ``retract_young`` steps (its age ``since``) is held back from a retraction by its
+    hypothesis while another declared fault is younger than that; a lone fault, two old
+    ones, or a fault that is young itself (settled, but declared or grown lately: a new
+    fault that ends while the older ones' estimates moved at its onset) is not, and 0
+    turns the rule off (``gap_cap`` then as before)."""
+    import jax.numpy as jnp
+
+    from uimm_jax.engine.uimm_est import EstSettings
+
+    s = EstSettings(settle_steps=100, retract_young=1000, low_floor_age=500)
+    # runs: old + young, both old, settled but young + young, one declared and old (an
+    # intermittent fault), a young third fault undeclared
+    declared = jnp.asarray(
+        [
+            [True, True, True, True, True],
+            [True, True, True, False, False],
+            [False, False, False, False, False],
+        ]
+    )
+    since = jnp.asarray(
+        [[1000, 1000, 500, 1000, 1000], [300, 1000, 50, 10, 1000], [9, 9, 9, 9, 9]], jnp.int32
+    )
+    held = rules.retract_young(s, declared, since)
+    want = [[True, False, False, False, False], [False, False, False, False, False], [False] * 5]
+    np.testing.assert_array_equal(held, want)
+    assert rules.gap_cap(s) == 1000  # since counts far enough to see the other grow
+    assert rules.gap_cap(s._replace(retract_young=0)) == 500  # low_floor_age, as before
 
 
 def test_retract_keep_keeps_only_the_challenger_that_led_before_the_retraction_hypothesis():

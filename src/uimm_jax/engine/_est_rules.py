@@ -20,7 +20,7 @@ from uimm_jax.engine.uimm_est_types import EstSettings
 def gap_cap(s: EstSettings) -> int:
     """The largest restart gap of ``s`` (``since`` counts up to it)."""
     gaps = (s.restart_gap, s.floor_gap, s.post_gap, s.post_floor_gap, s.low_floor_age)
-    return max(*gaps, s.settle_steps if s.walk_settled else 0)
+    return max(*gaps, s.settle_steps if s.walk_settled else 0, s.retract_young)
 
 
 def floor_mean(s: EstSettings, declared: jax.Array, since: jax.Array, models: bool = False):
@@ -99,6 +99,29 @@ def settle_low(s: EstSettings, declared, est, since, anchor, fresh):
     """
     down = declared & fresh & (since == s.settle_steps) & (jnp.abs(est) < jnp.abs(anchor))
     return jnp.where(down, est, anchor), fresh & ~down
+
+
+def retract_young(s: EstSettings, declared, since) -> jax.Array:
+    """``retract_young``: old faults whose retraction hypothesis does not count now.
+
+    With ``walk_settled`` and ``settle_move``, a declared fault's ``since`` is its age, and
+    it restarts whenever its estimate grows.  While another declared fault has grown within
+    the last ``retract_young`` steps (its ``since`` below that), an old fault, one that has
+    not grown for that long itself, is not retracted by its retraction hypothesis "D - f_i"
+    winning: the growing fault's estimate lags its ramp and, on air in oil's log scale, the
+    lag is partly explained by removing a look-alike that cancels it (valve wear in the
+    input gain), so "D - f_i" then measures the other fault's lag, not f_i's end
+    (docs/faults.md, "Session 14": on sim 2's 10 s ramps at 2-3 valve wear at 2-3x its size
+    was retracted so, and never declared again).  A fault that is young itself is not held:
+    a new fault's onset moves the older faults' estimates (their age restarts), and its own
+    end must still be retracted at once (the user plant's three sensor biases).  The ``low``
+    rule (the estimate below ``retract_below``) still retracts, and a lone declared fault
+    (an intermittent one) is never held.  Returns ``(F, *runs)`` bool, the faults whose
+    retraction hypothesis is held back.
+    """
+    young = (declared & (since < s.retract_young)).astype(jnp.int32)
+    others = jnp.sum(young, axis=0) - young  # other declared faults still growing
+    return declared & (since >= s.retract_young) & (others > 0)
 
 
 def challenger(declared, log_mode_probs, chal):

@@ -32,8 +32,10 @@ second fault; ``post_floor_means`` (a floor per fault, from ``low_floor_age`` st
 and ``settle_move`` (a fault settles only once its estimate stops growing) refine them
 (docs/faults.md, "Session 10"); ``retract_keep`` spares the challenger that led before a
 retraction hypothesis took the lead its restart at the floor (docs/faults.md, "Session
-12"), and ``settle_low`` brings a declaration's growth anchor down to the estimate when the
-fault settles (docs/faults.md, "Session 13").  Since session 11 the defaults are the settings "S10a"
+12"), ``settle_low`` brings a declaration's growth anchor down to the estimate when the
+fault settles (docs/faults.md, "Session 13"), and ``retract_young`` keeps an old fault's
+retraction hypothesis from retracting it while another declared fault still grows
+(docs/faults.md, "Session 14").  Since session 11 the defaults are the settings "S10a"
 of docs/faults.md (all of these on but ``post_gap``; ``post_floor_means`` is per fault,
 so it is empty by default and set by the actuator's scenario files; :class:`EstSettings`).
 An undeclared hypothesis' own magnitude is kept ``>= floor_mean`` (and its standard
@@ -48,9 +50,10 @@ hypotheses at the bound, where neither can be declared).
   ``hold`` samples and its estimate of ``a_j`` at least ``declare_min`` (with
   ``declare_rel``, 0.15 by default, a first declaration also needs the estimate's sd at most
   ``declare_rel`` of it; docs/faults.md, "Session 11");
-* retract ``j`` when ``D - f_j`` wins in the same way, or when model 0's estimate of
-  ``a_j`` stays below ``retract_below`` for ``hold`` samples (the estimate returned to
-  nominal).
+* retract ``j`` when ``D - f_j`` wins in the same way (with ``retract_young``, for a
+  ``j`` that has not grown lately, only while no other declared fault has), or when model 0's
+  estimate of ``a_j`` stays below ``retract_below`` for ``hold`` samples (the estimate
+  returned to nominal).
 
 On either, the winner's posterior goes to every model, except that the winner's slot
 takes the old model 0's (the two swap meaning: after declaring ``j``, ``D_new - f_j`` is
@@ -242,6 +245,8 @@ class UIMMEstDiagnoser(Diagnoser):
         sure = top >= jnp.log(jnp.asarray(params.threshold, dtype))
         models = np.arange(1, self.num_models).reshape((-1,) + (1,) * dec.candidate.ndim)
         ret_hyp = (dec.candidate == models) & declared & sure  # (F, *runs)
+        if s.retract_young:  # not while another declared fault still grows
+            ret_hyp = ret_hyp & ~rules.retract_young(s, declared, since)
         low = declared & (est < s.retract_below)
         low_len = jnp.where(low | ret_hyp, state.low_len + 1, 0)
         retract = low_len >= (s.retract_hold or params.hold)

@@ -58,7 +58,9 @@ class EstSettings(NamedTuple):
     (session 13) lowers the 10 s ramps at 0.5 to 0 false runs in both sims (sim 1 0, 0, 0,
     0, 0 and sim 2 1, 0, 0, 0, 0 at 0.3-3) and keeps every other acceptance cell within
     its line (1 s ramps, intermittent and paper unchanged; abrupt sizes' coverage moves
-    by up to 5 points, all >= 94 %).
+    by up to 5 points, all >= 94 %).  ``retract_young`` (session 14) lowers the retractions
+    of a present valve wear on sim 2's 10 s ramps at 2 and 3 from 10 and 3 runs per 64 to
+    2 and 0 and leaves every other acceptance cell as it was, bit for bit.
     **Settings counted in steps** (the gaps, ``settle_steps``, ``retract_hold``,
     ``low_floor_age``) were measured on the actuator at ``dt`` = 1e-4 s and are given for
     a plant sampled every ``steps_dt`` seconds (default 1e-4): on a plant sampled every
@@ -169,6 +171,12 @@ class EstSettings(NamedTuple):
             nominal, so that a fault declared above the truth early in a ramp does not lag
             it unseen (see ``_est_rules.settle_low``; docs/faults.md, "Session 13";
             default true since then).
+        retract_young: with ``walk_settled`` and ``settle_move``, a declared fault that has
+            not grown for this many steps (its age) is not retracted by its retraction
+            hypothesis while another declared fault has grown within them: the growing
+            fault's lag is then what "D - f_i" explains (see ``_est_rules.retract_young``;
+            the ``low`` rule still retracts; docs/faults.md, "Session 14"; 0: off; default
+            10000, 1 s at ``steps_dt``, the mode probabilities' memory ``1 / (1 - stay)``).
     """
 
     walk: float = 1e-3
@@ -204,6 +212,7 @@ class EstSettings(NamedTuple):
     steps_dt: float = 1e-4
     retract_keep: bool = True
     settle_low: bool = True
+    retract_young: int = 10000
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -238,6 +247,7 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "low_floor_age": (0, False, "steps; 0: off"),
     "declare_rel": (0.0, False, "a fraction of the estimate; 0: off"),
     "steps_dt": (0.0, False, "seconds; 0: off, counts are samples"),
+    "retract_young": (0, False, "steps; 0: off"),
 }
 _HIGH = {"restart_below": 1.0, "tangent_order": 12}
 
@@ -367,7 +377,7 @@ def est_value_from_text(name: str, text: str) -> Any:
 # -- sampling time: the one place where the step counts meet the plant's dt ------------
 
 COUNTED_SETTINGS = ("restart_gap", "floor_gap", "post_gap", "settle_steps", "post_floor_gap")
-COUNTED_SETTINGS += ("retract_hold", "low_floor_age")
+COUNTED_SETTINGS += ("retract_hold", "low_floor_age", "retract_young")
 """The settings counted in steps, which :func:`settings_at_dt` converts."""
 
 
@@ -375,9 +385,10 @@ def settings_at_dt(settings: EstSettings, dt: Any) -> EstSettings:
     """``settings`` (given at ``steps_dt``) as the rules use them at sampling time ``dt``.
 
     Each setting counted in steps (``restart_gap``, ``floor_gap``, ``post_gap``,
-    ``settle_steps``, ``post_floor_gap``, ``retract_hold``, ``low_floor_age``) becomes
-    ``round(count * steps_dt / dt)`` samples (halves up), at least 1 unless it was 0
-    (off), and ``steps_dt`` becomes ``dt`` (the result is its own conversion at ``dt``).
+    ``settle_steps``, ``post_floor_gap``, ``retract_hold``, ``low_floor_age``,
+    ``retract_young``) becomes ``round(count * steps_dt / dt)`` samples (halves up), at
+    least 1 unless it was 0 (off), and ``steps_dt`` becomes ``dt`` (the result is its own
+    conversion at ``dt``).
     With ``steps_dt == dt`` or ``steps_dt = 0`` it returns ``settings`` itself: the same
     numbers, bit for bit.  Not converted: the random walks (per sample; scaling them by
     ``sqrt(dt / steps_dt)`` was measured worse, :class:`EstSettings`) and the decision's
