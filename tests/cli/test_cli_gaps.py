@@ -15,7 +15,7 @@ import warnings
 import numpy as np
 import pytest
 
-from _robustness_helpers import short_dict
+from _robustness_helpers import short_dict, write_short
 from uimm_jax import Fault, LinearPlant, cli
 from uimm_jax.cli import _args
 from uimm_jax.cli import tune as tune_cli
@@ -160,10 +160,11 @@ def test_sweep_duration_flag_and_clean_imm_runs(short_file, tmp_path, capsys):
 
 
 def test_measured_data_shorter_than_an_event(short_file, tmp_path, capsys):
-    from uimm_jax.studies.run import run_scenario
+    from uimm_jax.studies.run import setup_scenario, simulate_scenario
 
     sc = load_scenario(short_file)  # events at 2 ms and 4 ms, 100 samples
-    y = run_scenario(sc).truth["y"][:30]  # the data ends at 3 ms
+    # the data (the simulated truth's; no filter run of 100 steps to compile) ends at 3 ms
+    y = simulate_scenario(setup_scenario(sc))["y"][:30]
     np.save(tmp_path / "y.npy", y)
     args = ["run", str(short_file), "--measurements", str(tmp_path / "y.npy"), "--quiet"]
     assert cli.main([*args, "--no-plots", "--out", str(tmp_path / "o")]) == 0
@@ -172,12 +173,15 @@ def test_measured_data_shorter_than_an_event(short_file, tmp_path, capsys):
     assert "valve_wear" in printed and "leakage" in printed
 
 
-def test_float32_console_says_float32(short_file, tmp_path, capsys):
-    args = ["run", str(short_file), "--float32", "--quiet", "--no-plots"]
+def test_float32_console_says_float32(tmp_path, capsys):
+    # The 1 s short sim 1 of tests/studies/test_float32.py (its float32 kernel is compiled
+    # once for both files: a 100-step file compiled its own, ~15 s of CPU).
+    args = ["run", str(write_short(tmp_path / "s.toml", 1)), "--float32", "--quiet", "--no-plots"]
     assert cli.main([*args, "--out", str(tmp_path / "o")]) == 0
     printed = capsys.readouterr().out
     assert re.search(r"^scenario .*float32\)$", printed, re.M)
-    # 100 steps are one chunk: no steady-state rate, and the line says so.
+    # 1e4 steps are one chunk (the CLI's chunk is 1e5): no steady-state rate, and the
+    # line says so.
     assert re.search(r"^filter runtime .* us/step, compilation included\)$", printed, re.M)
     assert "steady state" not in printed
 
