@@ -36,7 +36,7 @@ if os.environ.get("UIMM_JAX_TEST_NO_CACHE", "") in ("", "0"):
 
 # Python's cyclic garbage collector: the suite keeps about a million objects alive (JAX's
 # traced and compiled functions), which every full collection walks.  Fewer, later
-# collections (nothing else changes: no object is freed later than the run needs).
+# collections: cyclic garbage lives a little longer (memory only; no result changes).
 # Measured on tests/engine (session 14, one process each, gc.callbacks): 17 full
 # collections and 7.6 s of collection against 3 and 2.1 s.
 gc.set_threshold(50_000, 20, 1000)
