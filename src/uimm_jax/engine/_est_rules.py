@@ -114,9 +114,14 @@ def settle_creep(s: EstSettings, declared, est, since, anchor):
     exponential average of the estimate over ``settle_creep`` steps: growth then counts
     only when the estimate rises ``settle_move`` sds above its own recent average (a
     sustained trend in the fault's direction), not above an old anchor.  An anchor never
-    creeps towards nominal.  Returns the new ``anchor``.
+    creeps towards nominal, and only the only declared fault's creeps: with every declared
+    fault's anchor creeping, a second fault that still grows (air in oil on sim 2's 10 s
+    ramps at 2-3) settles, lags its ramp unseen and loses its coverage, and the retraction
+    hold of ``retract_young``, which its growth sustains, lapses (measured: wrong
+    retractions 2 -> 5 and 0 -> 9).  Returns the new ``anchor``.
     """
-    away = declared & (since >= s.settle_steps) & (jnp.abs(est) > jnp.abs(anchor))
+    alone = jnp.sum(declared, axis=0) == 1
+    away = declared & alone & (since >= s.settle_steps) & (jnp.abs(est) > jnp.abs(anchor))
     return jnp.where(away, anchor + (est - anchor) / s.settle_creep, anchor)
 
 

@@ -177,8 +177,8 @@ class EstSettings(NamedTuple):
             fault's lag is then what "D - f_i" explains (see ``_est_rules.retract_young``;
             the ``low`` rule still retracts; docs/faults.md, "Session 14"; 0: off; default
             10000, 1 s at ``steps_dt``, the mode probabilities' memory ``1 / (1 - stay)``).
-        settle_creep: with ``walk_settled`` and ``settle_move``, a settled declared fault's
-            anchor moves ``1 / settle_creep`` of the way to an estimate farther from
+        settle_creep: with ``walk_settled`` and ``settle_move``, the only declared fault's
+            anchor, once settled, moves ``1 / settle_creep`` of the way to an estimate farther from
             nominal at each step, so that growth counts only against the estimate's recent
             average, not on a noise crossing of an anchor set while the ramp still grew
             (see ``_est_rules.settle_creep``; docs/faults.md, "Session 14"; steps; 0: off,
