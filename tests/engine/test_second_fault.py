@@ -179,26 +179,6 @@ def test_settle_creep_moves_only_a_settled_anchor_and_only_away_from_nominal():
     np.testing.assert_allclose(new_anchor[1], anchor[1])  # fault 1: never alone
 
 
-def test_settle_high_raises_an_anchor_only_on_the_step_the_fault_settles():
-    """``settle_high`` (session 14): on the step a declared fault settles (age
-    ``settle_steps``), an anchor nearer nominal than the estimate comes up to it; an
-    estimate nearer nominal, a fault settled earlier or still young, or an undeclared one
-    leave it alone."""
-    import jax.numpy as jnp
-
-    from uimm_jax.engine.uimm_est import EstSettings
-
-    s = EstSettings(walk_settled=3e-5, settle_steps=100, settle_move=5.0, settle_high=True)
-    # runs: settling with the estimate above the anchor, below it, settled long ago,
-    # young, a negative magnitude settling, not declared
-    declared = jnp.asarray([[True] * 5 + [False]])
-    since = jnp.asarray([[100, 100, 150, 50, 100, 100]], jnp.int32)
-    anchor = jnp.asarray([[0.5] * 4 + [-0.5, 0.5]])
-    est = jnp.asarray([[0.55, 0.45, 0.55, 0.55, -0.55, 0.55]])
-    new_anchor = rules.settle_high(s, declared, est, since, anchor)
-    np.testing.assert_allclose(new_anchor, [[0.55, 0.5, 0.5, 0.5, -0.55, 0.5]])
-
-
 def test_retract_young_holds_an_old_fault_s_retraction_only_while_another_grows():
     """``retract_young`` (session 14): a declared fault that has not grown for
     ``retract_young`` steps (its age ``since``) is held back from a retraction by its

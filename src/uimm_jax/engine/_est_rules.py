@@ -125,24 +125,6 @@ def settle_creep(s: EstSettings, declared, est, since, anchor):
     return jnp.where(away, anchor + (est - anchor) / s.settle_creep, anchor)
 
 
-def settle_high(s: EstSettings, declared, est, since, anchor):
-    """``settle_high``: on the step a declared fault settles its anchor rises to the estimate.
-
-    The mirror of :func:`settle_low` for an anchor nearer nominal than the settled
-    estimate: an anchor set by a move while the ramp still grew (sim 2's run 47 of the 10 s
-    ramps at 0.3: 0.2868 for a settled 0.2985-0.3005) lies below where the estimate
-    settles, and as the settled sd shrinks a noise crossing of ``settle_move`` sds re-opens
-    the walk, which absorbs a second fault's onset (docs/faults.md, "Session 13",
-    "Session 14").  Here, on the step a declared fault settles (age ``since ==
-    settle_steps``), an anchor nearer nominal than the estimate comes up to it, so that
-    growth counts from where the estimate settled; the delay this adds to a genuine
-    growth is less than ``settle_move`` sds (else the move would have counted).  Returns
-    the new ``anchor``.
-    """
-    up = declared & (since == s.settle_steps) & (jnp.abs(est) > jnp.abs(anchor))
-    return jnp.where(up, est, anchor)
-
-
 def retract_young(s: EstSettings, declared, since) -> jax.Array:
     """``retract_young``: old faults whose retraction hypothesis does not count now.
 

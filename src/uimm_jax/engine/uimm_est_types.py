@@ -183,10 +183,6 @@ class EstSettings(NamedTuple):
             average, not on a noise crossing of an anchor set while the ramp still grew
             (see ``_est_rules.settle_creep``; docs/faults.md, "Session 14"; steps; 0: off,
             the default).
-        settle_high: with ``settle_move``, on the step a declared fault settles an anchor
-            nearer nominal than the estimate comes up to it (an anchor set while the ramp
-            still grew; see ``_est_rules.settle_high``; docs/faults.md, "Session 14";
-            default false).
     """
 
     walk: float = 1e-3
@@ -224,7 +220,6 @@ class EstSettings(NamedTuple):
     settle_low: bool = True
     retract_young: int = 10000
     settle_creep: int = 0
-    settle_high: bool = False
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
