@@ -181,8 +181,9 @@ class EstSettings(NamedTuple):
             anchor, once settled, moves ``1 / settle_creep`` of the way to an estimate farther from
             nominal at each step, so that growth counts only against the estimate's recent
             average, not on a noise crossing of an anchor set while the ramp still grew
-            (see ``_est_rules.settle_creep``; docs/faults.md, "Session 14"; steps; 0: off,
-            the default).
+            (see ``_est_rules.settle_creep``; docs/faults.md, "Session 14": 30000 mends sim
+            2's run 47 of the 10 s ramps at 0.3 but costs one run's coverage at 3; steps;
+            0: off, the default).
     """
 
     walk: float = 1e-3
