@@ -158,6 +158,27 @@ def test_settle_low_lowers_only_a_declaration_s_anchor_on_the_step_it_settles():
     np.testing.assert_array_equal(new_fresh, [[False, True, False, True, True, False, True]])
 
 
+def test_settle_creep_moves_only_a_settled_anchor_and_only_away_from_nominal():
+    """``settle_creep`` (session 14): a settled declared fault's anchor moves ``1 /
+    settle_creep`` of the way to an estimate farther from nominal while it is the only
+    declared fault; an estimate nearer nominal, a young fault, an undeclared one or one
+    declared beside another leave it alone."""
+    import jax.numpy as jnp
+
+    from uimm_jax.engine.uimm_est import EstSettings
+
+    s = EstSettings(walk_settled=3e-5, settle_steps=100, settle_move=5.0, settle_creep=4)
+    # runs: settled with the estimate above the anchor, below it, young, negative magnitude
+    # above in size, not declared, settled beside another declared fault (second row)
+    declared = jnp.asarray([[True] * 4 + [False, True], [False] * 5 + [True]])
+    since = jnp.asarray([[100, 150, 50, 120, 150, 150]] * 2, jnp.int32)
+    anchor = jnp.asarray([[0.5, 0.5, 0.5, -0.5, 0.5, 0.5]] * 2)
+    est = jnp.asarray([[0.6, 0.4, 0.6, -0.7, 0.6, 0.6]] * 2)
+    new_anchor = rules.settle_creep(s, declared, est, since, anchor)
+    np.testing.assert_allclose(new_anchor[0], [0.525, 0.5, 0.5, -0.55, 0.5, 0.5])
+    np.testing.assert_allclose(new_anchor[1], anchor[1])  # fault 1: never alone
+
+
 def test_retract_young_holds_an_old_fault_s_retraction_only_while_another_grows():
     """``retract_young`` (session 14): a declared fault that has not grown for
     ``retract_young`` steps (its age ``since``) is held back from a retraction by its

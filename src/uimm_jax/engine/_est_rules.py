@@ -101,6 +101,30 @@ def settle_low(s: EstSettings, declared, est, since, anchor, fresh):
     return jnp.where(down, est, anchor), fresh & ~down
 
 
+def settle_creep(s: EstSettings, declared, est, since, anchor):
+    """``settle_creep``: a settled fault's anchor follows its estimate away from nominal.
+
+    :func:`moved` restarts a settled fault's age (its fast walk) on one crossing of
+    ``settle_move`` standard deviations beyond ``anchor``.  An anchor set while a ramp
+    still grew lies below the settled estimate, and as the settled sd shrinks a noise
+    crossing re-opens the walk, which then absorbs a second fault's onset (sim 2's run
+    47 of the 10 s ramps at 0.3; docs/faults.md, "Session 13", "Session 14").  Here a
+    settled declared fault's anchor (age ``since >= settle_steps``) moves a fraction
+    ``1 / settle_creep`` of the way to an estimate farther from nominal at each step, an
+    exponential average of the estimate over ``settle_creep`` steps: growth then counts
+    only when the estimate rises ``settle_move`` sds above its own recent average (a
+    sustained trend in the fault's direction), not above an old anchor.  An anchor never
+    creeps towards nominal, and only the only declared fault's creeps: with every declared
+    fault's anchor creeping, a second fault that still grows (air in oil on sim 2's 10 s
+    ramps at 2-3) settles, lags its ramp unseen and loses its coverage, and the retraction
+    hold of ``retract_young``, which its growth sustains, lapses (measured: wrong
+    retractions 2 -> 5 and 0 -> 9).  Returns the new ``anchor``.
+    """
+    alone = jnp.sum(declared, axis=0) == 1
+    away = declared & alone & (since >= s.settle_steps) & (jnp.abs(est) > jnp.abs(anchor))
+    return jnp.where(away, anchor + (est - anchor) / s.settle_creep, anchor)
+
+
 def retract_young(s: EstSettings, declared, since) -> jax.Array:
     """``retract_young``: old faults whose retraction hypothesis does not count now.
 

@@ -269,6 +269,8 @@ class UIMMEstDiagnoser(Diagnoser):
             anchor = jnp.where(new_declared & ~declared, est, anchor)
             if s.settle_low:  # the anchor is the declaration's until it moves
                 fresh = jnp.where(anchor != old, False, fresh) | (new_declared & ~declared)
+            if s.settle_creep:  # a settled anchor follows its estimate away from nominal
+                anchor = rules.settle_creep(s, declared, est, since, anchor)
         if s.walk_settled:  # since: a declared fault's age; a retracted one is due again
             since = jnp.where(new_declared & ~declared, 0, since)
             since = jnp.where(retract, rules.gap_cap(s), since).astype(jnp.int32)

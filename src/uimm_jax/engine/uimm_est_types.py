@@ -177,6 +177,13 @@ class EstSettings(NamedTuple):
             fault's lag is then what "D - f_i" explains (see ``_est_rules.retract_young``;
             the ``low`` rule still retracts; docs/faults.md, "Session 14"; 0: off; default
             10000, 1 s at ``steps_dt``, the mode probabilities' memory ``1 / (1 - stay)``).
+        settle_creep: with ``walk_settled`` and ``settle_move``, the only declared fault's
+            anchor, once settled, moves ``1 / settle_creep`` of the way to an estimate farther from
+            nominal at each step, so that growth counts only against the estimate's recent
+            average, not on a noise crossing of an anchor set while the ramp still grew
+            (see ``_est_rules.settle_creep``; docs/faults.md, "Session 14": 30000 mends sim
+            2's run 47 of the 10 s ramps at 0.3 but costs one run's coverage at 3; steps;
+            0: off, the default).
     """
 
     walk: float = 1e-3
@@ -213,6 +220,7 @@ class EstSettings(NamedTuple):
     retract_keep: bool = True
     settle_low: bool = True
     retract_young: int = 10000
+    settle_creep: int = 0
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -248,6 +256,7 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "declare_rel": (0.0, False, "a fraction of the estimate; 0: off"),
     "steps_dt": (0.0, False, "seconds; 0: off, counts are samples"),
     "retract_young": (0, False, "steps; 0: off"),
+    "settle_creep": (0, False, "steps; 0: off"),
 }
 _HIGH = {"restart_below": 1.0, "tangent_order": 12}
 
@@ -377,7 +386,7 @@ def est_value_from_text(name: str, text: str) -> Any:
 # -- sampling time: the one place where the step counts meet the plant's dt ------------
 
 COUNTED_SETTINGS = ("restart_gap", "floor_gap", "post_gap", "settle_steps", "post_floor_gap")
-COUNTED_SETTINGS += ("retract_hold", "low_floor_age", "retract_young")
+COUNTED_SETTINGS += ("retract_hold", "low_floor_age", "retract_young", "settle_creep")
 """The settings counted in steps, which :func:`settings_at_dt` converts."""
 
 
