@@ -245,7 +245,7 @@ class UIMMEstDiagnoser(Diagnoser):
         sure = top >= jnp.log(jnp.asarray(params.threshold, dtype))
         models = np.arange(1, self.num_models).reshape((-1,) + (1,) * dec.candidate.ndim)
         ret_hyp = (dec.candidate == models) & declared & sure  # (F, *runs)
-        if s.retract_young:  # not while another declared fault still grows
+        if s.retract_young and s.walk_settled and s.settle_move > 0:  # ``since`` is an age
             ret_hyp = ret_hyp & ~rules.retract_young(s, declared, since)
         low = declared & (est < s.retract_below)
         low_len = jnp.where(low | ret_hyp, state.low_len + 1, 0)

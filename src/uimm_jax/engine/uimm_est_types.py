@@ -395,9 +395,9 @@ def settings_at_dt(settings: EstSettings, dt: Any) -> EstSettings:
 
     Each setting counted in steps (``restart_gap``, ``floor_gap``, ``post_gap``,
     ``settle_steps``, ``post_floor_gap``, ``retract_hold``, ``low_floor_age``,
-    ``retract_young``) becomes ``round(count * steps_dt / dt)`` samples (halves up), at
-    least 1 unless it was 0 (off), and ``steps_dt`` becomes ``dt`` (the result is its own
-    conversion at ``dt``).
+    ``retract_young``, ``settle_creep``) becomes ``round(count * steps_dt / dt)`` samples
+    (halves up), at least 1 unless it was 0 (off), and ``steps_dt`` becomes ``dt`` (the
+    result is its own conversion at ``dt``).
     With ``steps_dt == dt`` or ``steps_dt = 0`` it returns ``settings`` itself: the same
     numbers, bit for bit.  Not converted: the random walks (per sample; scaling them by
     ``sqrt(dt / steps_dt)`` was measured worse, :class:`EstSettings`) and the decision's
