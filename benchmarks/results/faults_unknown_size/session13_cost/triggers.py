@@ -21,24 +21,16 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parents[3] / "benchmarks"))
 from compact import CompactDiagnoser  # noqa: E402
+from cost13 import batch_data, batch_state  # noqa: E402
 
 from faults_unknown_size import _scenario  # noqa: E402
-from uimm_jax.scenario.parse import parse_scenario  # noqa: E402
-from uimm_jax.scenario.write import scenario_to_dict  # noqa: E402
-from uimm_jax.studies.run import setup_scenario, simulate_scenario  # noqa: E402
+from uimm_jax.studies.run import setup_scenario  # noqa: E402
 
 B = int(sys.argv[1]) if len(sys.argv) > 1 else 64
 N = 4000
 sc = _scenario(1, 1.0)
 est = setup_scenario(sc, "uimm-est")
-d64 = scenario_to_dict(sc)
-d64["duration"] = N * sc.dt
-for e, tt in zip(d64["events"], (0.1, 0.25), strict=True):
-    e["time"] = tt
-su = setup_scenario(parse_scenario(d64), "uimm")
-tr = [simulate_scenario(su, s) for s in range(B)]
-yb = jnp.asarray(np.stack([t["y"][:N] for t in tr], -1))
-ub = jnp.asarray(np.stack([t["u"][:N] for t in tr], -1))
+ub, yb = batch_data(sc, B, N)  # the cost data, built as cost13.py builds it
 out = {}
 VARIANTS = {
     "uimm-est": est.diagnoser,
@@ -50,7 +42,7 @@ VARIANTS = {
 }
 for name, diag in VARIANTS.items():
     st0 = est.init_state if name == "uimm-est" else diag.init(est.init_state)
-    st = jax.tree.map(lambda a: jnp.broadcast_to(a[..., None], a.shape + (B,)), st0)
+    st = batch_state(st0, B)
 
     @jax.jit
     def run(st, us, ys, diag=diag):
