@@ -17,10 +17,20 @@ from uimm_jax.engine.imm import IMMState
 from uimm_jax.engine.uimm_est_types import EstSettings
 
 
+def growth_ages(s: EstSettings) -> bool:
+    """Whether ``since`` is a declared fault's age, restarted when its estimate grows.
+
+    That holds with ``walk_settled`` and ``settle_move``; ``settle_low``, ``settle_creep``
+    and ``retract_young`` read it so.
+    """
+    return bool(s.walk_settled) and s.settle_move > 0
+
+
 def gap_cap(s: EstSettings) -> int:
     """The largest restart gap of ``s`` (``since`` counts up to it)."""
     gaps = (s.restart_gap, s.floor_gap, s.post_gap, s.post_floor_gap, s.low_floor_age)
-    return max(*gaps, s.settle_steps if s.walk_settled else 0, s.retract_young)
+    young = s.retract_young if growth_ages(s) else 0
+    return max(*gaps, s.settle_steps if s.walk_settled else 0, young)
 
 
 def floor_mean(s: EstSettings, declared: jax.Array, since: jax.Array, models: bool = False):

@@ -245,7 +245,7 @@ class UIMMEstDiagnoser(Diagnoser):
         sure = top >= jnp.log(jnp.asarray(params.threshold, dtype))
         models = np.arange(1, self.num_models).reshape((-1,) + (1,) * dec.candidate.ndim)
         ret_hyp = (dec.candidate == models) & declared & sure  # (F, *runs)
-        if s.retract_young and s.walk_settled and s.settle_move > 0:  # ``since`` is an age
+        if s.retract_young and rules.growth_ages(s):  # not while another still grows
             ret_hyp = ret_hyp & ~rules.retract_young(s, declared, since)
         low = declared & (est < s.retract_below)
         low_len = jnp.where(low | ret_hyp, state.low_len + 1, 0)
@@ -261,7 +261,7 @@ class UIMMEstDiagnoser(Diagnoser):
         imm_state, cache = self._handover(imm_state, state.cache, winner, changed, new_declared)
         imm_state = rules.reopen(s, n, imm_state, new_declared & ~declared)
         anchor, fresh = state.anchor, state.fresh
-        if s.walk_settled and s.settle_move > 0:  # a fault still growing is not settled
+        if rules.growth_ages(s):  # a fault still growing is not settled
             if s.settle_low:  # a declaration's anchor comes down to a settled estimate
                 anchor, fresh = rules.settle_low(s, declared, est, since, anchor, fresh)
             old = anchor
