@@ -251,3 +251,46 @@ def test_retract_keep_keeps_only_the_challenger_that_led_before_the_retraction_h
         got, _ = reset(state, use, declared, since, keep)
         np.testing.assert_allclose(np.asarray(got.mean[n + 2, :, 0]), air)  # every model
         np.testing.assert_allclose(np.asarray(got.mean[n + 1, :, 0]), s.prior_mean)  # leakage
+
+
+def test_reopen_old_widens_the_faults_kept_only_on_a_step_that_declares_another():
+    """``reopen_old`` (session 15): on a declaration the newly declared fault's sd is
+    raised to ``reopen_rel`` of its mean and every fault that stays declared to
+    ``reopen_old`` of its own, in every model; a wider sd is kept, the means and every
+    other entry of the covariance are unchanged (a PSD matrix is added), and with
+    ``reopen_old = 0`` the kept faults are left alone."""
+    import jax.numpy as jnp
+
+    from uimm_jax.engine.imm import IMMState
+    from uimm_jax.engine.uimm_est import EstSettings
+
+    n, F, M, R = 3, 3, 4, 2
+    rng = np.random.default_rng(0)
+    mean = rng.normal(size=(n + F, M, R))
+    mean[n:] = np.abs(mean[n:]) + 1.0
+    a = rng.normal(size=(n + F, n + F, M, R))
+    cov = np.einsum("ikmr,jkmr->ijmr", a, a) * 1e-6 + np.eye(n + F)[..., None, None] * 1e-8
+    st = IMMState(log_mode_probs=jnp.zeros((M, R)), mean=jnp.asarray(mean), cov=jnp.asarray(cov))
+    # run 0: fault 2 newly declared, fault 0 kept (declared before), fault 1 not declared;
+    # run 1: nothing new (no kept fault either)
+    new = jnp.asarray([[False, False], [False, False], [True, False]])
+    kept = jnp.asarray([[True, False], [False, False], [False, False]])
+    s = EstSettings(reopen_rel=0.2, reopen_old=0.01)
+    out = rules.reopen(s, n, st, new, kept)
+    np.testing.assert_array_equal(out.mean, st.mean)
+    var_in = np.asarray(rules.mag_var(st.cov, n))
+    var_out = np.asarray(rules.mag_var(out.cov, n))
+    np.testing.assert_allclose(
+        var_out[2, :, 0], np.maximum((0.2 * mean[n + 2, :, 0]) ** 2, var_in[2, :, 0])
+    )
+    np.testing.assert_allclose(
+        var_out[0, :, 0], np.maximum((0.01 * mean[n, :, 0]) ** 2, var_in[0, :, 0])
+    )
+    assert np.all(var_out[0, :, 0] > var_in[0, :, 0])  # (0.01 x mean >= 1)^2 > these variances
+    np.testing.assert_array_equal(var_out[1], var_in[1])
+    np.testing.assert_array_equal(var_out[:, :, 1], var_in[:, :, 1])
+    diff = np.asarray(out.cov) - cov
+    off = ~np.eye(n + F, dtype=bool)
+    np.testing.assert_array_equal(diff[off], 0.0)  # only the magnitudes' variances move
+    off_rule = rules.reopen(s._replace(reopen_old=0.0), n, st, new, kept)
+    np.testing.assert_array_equal(rules.mag_var(off_rule.cov, n)[0], var_in[0])

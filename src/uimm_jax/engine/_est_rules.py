@@ -329,7 +329,7 @@ def walk_rel(s: EstSettings, n: int, st: IMMState, declared, since) -> IMMState:
     return st._replace(cov=add_mag_var(st.cov, n, jnp.broadcast_to(extra, st.mean[n:].shape)))
 
 
-def reopen(s: EstSettings, n: int, st: IMMState, new: jax.Array) -> IMMState:
+def reopen(s: EstSettings, n: int, st: IMMState, new: jax.Array, kept: jax.Array) -> IMMState:
     """A newly declared fault's magnitude: sd ``>= reopen_rel`` times its mean, every model.
 
     The variance a hypothesis hands over was accumulated during the race, at
@@ -339,11 +339,17 @@ def reopen(s: EstSettings, n: int, st: IMMState, new: jax.Array) -> IMMState:
     2 declared at 1.5, 300x for 3 at 1.75): the estimate was declared at 1.5-1.8 with
     sd 0.02-0.03, then crept towards the truth for hundreds of ms, and the bank
     explained the rest by retracting valve wear or declaring leakage (docs/faults.md,
-    "Sizes").  Raising the variance adds a
+    "Sizes").  With ``reopen_old``, the faults that stay declared (``kept``: the step
+    declares another) are re-opened too, to ``reopen_old`` times their mean: during the
+    race model 0 explains the new fault's first effect by them (sim 2's valve wear at 3
+    moved 7 sd, 3.001 -> 2.980 at sd 0.003, as air in oil began), and an old fault that
+    the new one makes hard to observe keeps that error with the race's sd to the end
+    (docs/faults.md, "Session 15").  Raising the variance adds a
     PSD matrix (the covariance stays PSD) and leaves the means (and the cache) alone.
     """
-    if s.reopen_rel <= 0:
+    if s.reopen_rel <= 0 and s.reopen_old <= 0:
         return st
-    target = (s.reopen_rel * st.mean[n:]) ** 2
-    add = jnp.where(new[:, None], jnp.maximum(target - mag_var(st.cov, n), 0.0), 0.0)
+    rel = jnp.where(new, s.reopen_rel, jnp.where(kept, s.reopen_old, 0.0))  # (F, *runs)
+    target = (rel[:, None] * st.mean[n:]) ** 2
+    add = jnp.where((new | kept)[:, None], jnp.maximum(target - mag_var(st.cov, n), 0.0), 0.0)
     return st._replace(cov=add_mag_var(st.cov, n, add))

@@ -33,11 +33,14 @@ and ``settle_move`` (a fault settles only once its estimate stops growing) refin
 (docs/faults.md, "Session 10"); ``retract_keep`` spares the challenger that led before a
 retraction hypothesis took the lead its restart at the floor (docs/faults.md, "Session
 12"), ``settle_low`` brings a declaration's growth anchor down to the estimate when the
-fault settles (docs/faults.md, "Session 13"), and ``retract_young`` keeps an old fault's
+fault settles (docs/faults.md, "Session 13"), ``retract_young`` keeps an old fault's
 retraction hypothesis from retracting it while another declared fault still grows
-(docs/faults.md, "Session 14").  Since session 11 the defaults are the settings "S10a"
-of docs/faults.md (all of these on but ``post_gap``; ``post_floor_means`` is per fault,
-so it is empty by default and set by the actuator's scenario files; :class:`EstSettings`).
+(docs/faults.md, "Session 14"), ``settle_creep`` lets a lone settled fault's anchor follow
+its estimate away from nominal, and ``reopen_old`` re-opens the faults already declared
+when another is (docs/faults.md, "Session 15").  Since session 11 the defaults are the
+settings "S10a" of docs/faults.md (all of these on but ``post_gap``; ``post_floor_means``
+is per fault, so it is empty by default and set by the actuator's scenario files;
+:class:`EstSettings`).
 An undeclared hypothesis' own magnitude is kept ``>= floor_mean`` (and its standard
 deviation ``>= floor_sd``), so that it means "a fault" and does not settle on nominal in
 fault-free data; ``floor_mean`` is below ``declare_min`` so that the bound never decides
@@ -60,7 +63,9 @@ takes the old model 0's (the two swap meaning: after declaring ``j``, ``D_new - 
 the old ``D``), the two swap probabilities, and the cache is rebuilt for the new sets.
 A newly declared fault's magnitude is then re-opened to a standard deviation of at least
 ``reopen_rel`` times its estimate: the variance the hypothesis gathered during the race
-was counted at linearisation points far from the truth (``_reopen``).
+was counted at linearisation points far from the truth; the faults that stay declared
+are re-opened to ``reopen_old`` times theirs, since model 0 explained the new fault's
+onset by them during the race (``_est_rules.reopen``).
 The cache's expansion point is re-centred whenever an estimate in use by a model of
 probability >= 1 % moves more than ``relin`` from it.  Rebuilds happen under
 ``lax.switch``: only on steps that need them, and in a batch of runs only for the runs
@@ -259,7 +264,9 @@ class UIMMEstDiagnoser(Diagnoser):
         changed = dec.declared_now | any_ret
         new_declared = jnp.where(retract, False, dec.declared)
         imm_state, cache = self._handover(imm_state, state.cache, winner, changed, new_declared)
-        imm_state = rules.reopen(s, n, imm_state, new_declared & ~declared)
+        fresh_decl = new_declared & ~declared
+        kept = new_declared & declared & jnp.any(fresh_decl, axis=0)
+        imm_state = rules.reopen(s, n, imm_state, fresh_decl, kept)
         anchor, fresh = state.anchor, state.fresh
         if rules.growth_ages(s):  # a fault still growing is not settled
             if s.settle_low:  # a declaration's anchor comes down to a settled estimate
