@@ -443,6 +443,20 @@ def test_sweep_reports_sizes_and_retractions_of_uimm_est():
     assert st["magnitude_mare"]["air_in_oil"] < 0.05
     assert 0.0 <= st["magnitude_coverage"]["air_in_oil"] <= 1.0
     assert res.summaries[by_case["fault-free"]]["false_declarations_all"] == 0
+    # runs.csv carries each run's last retraction and end-of-run size (exports.run_rows)
+    from uimm_jax.studies.exports import run_rows
+
+    head, rows = run_rows(res)
+    for row in rows:
+        c, r = row[0], row[5]
+        got = dict(zip(head, row, strict=True))
+        ret = est["retract_step"][c][r, 2]
+        assert (got["air_in_oil:retracted_s"] == "") == (ret < 0)
+        if ret >= 0:
+            assert round(got["air_in_oil:retracted_s"] / res.dt) == ret + 1
+        assert got["air_in_oil:magnitude"] == est["magnitude"][c][r, 2]
+        assert got["air_in_oil:magnitude_sd"] == est["magnitude_sd"][c][r, 2]
+    assert sum(dict(zip(head, w, strict=True))["air_in_oil:retracted_s"] != "" for w in rows) >= 14
 
 
 def test_user_plant_sensor_biases_step_ramp_and_end_are_sized_and_recognised():
@@ -465,6 +479,18 @@ def test_user_plant_sensor_biases_step_ramp_and_end_are_sized_and_recognised():
     assert s["retractions"][0]["time"] - 1.6 <= 0.03
     assert s["detection_delay_s"]["bias1"] <= 0.06  # a ramp that ends at 50 ms
     assert s["mode_accuracy"] >= 0.98
+    # timeseries.npz carries the per-step sizes and sds (exports.TIMESERIES_OPTIONAL_KEYS),
+    # whose last declared values are the summary's (bias0 and bias1 stay declared)
+    from uimm_jax.studies.exports import timeseries_arrays
+
+    a = timeseries_arrays(res)
+    assert a["magnitude"].shape == a["magnitude_sd"].shape == (len(a["time"]), 3)
+    for j, d_ in enumerate(s["declarations"][:2]):
+        assert d_["magnitude"] == a["magnitude"][-1, j]
+        sd = a["magnitude_sd"][-1, j]
+        assert d_["magnitude_ci"] == pytest.approx(
+            [d_["magnitude"] - 1.96 * sd, d_["magnitude"] + 1.96 * sd], rel=1e-4
+        )
 
 
 def test_gathered_cache_rebuild_equals_the_whole_batch_rebuild():

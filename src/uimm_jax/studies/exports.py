@@ -32,11 +32,12 @@ __all__ = [
 TIMESERIES_KEYS = ("time", "mode_probs", "recognised", "declared", "mean", "health")
 """Arrays of every ``timeseries.npz`` (see :func:`timeseries_arrays`)."""
 
-TIMESERIES_OPTIONAL_KEYS = ("fault_size",)
-"""Hook for per-step outputs that some runs record: each key of this tuple that a run's
-``outputs`` holds is exported too, under the same name.  ``fault_size`` is reserved for
-the fault-size estimates ``(N, F)`` of the faults issue (issue 13): once the run records
-them under that key, ``timeseries.npz`` and the CSV carry them with no change here."""
+TIMESERIES_OPTIONAL_KEYS = ("magnitude", "magnitude_sd")
+"""Per-step outputs that some runs record, exported under the same name when a run's
+``outputs`` holds them: a size-estimating diagnoser's (``uimm-est``) fault-size estimate
+``magnitude`` ``(N, F)`` and its standard deviation ``magnitude_sd`` ``(N, F)``, per fault
+(model 0's for a declared fault, its hypothesis' own for an undeclared one; the 95 %
+interval is ``magnitude +- 1.96 magnitude_sd``, as in ``summary.json``)."""
 
 
 def timeseries_arrays(result) -> dict[str, np.ndarray]:
@@ -52,7 +53,8 @@ def timeseries_arrays(result) -> dict[str, np.ndarray]:
         (eq. 30); ``health`` (N,) health bits (``health_flags``); ``truth`` (N,) the true
         fault-set code (the scenario's events for measured data); the names
         ``model_labels``, ``faults``, ``states`` and ``health_flags`` (bit values) as
-        arrays; and each key of :data:`TIMESERIES_OPTIONAL_KEYS` the run recorded.
+        arrays; and each key of :data:`TIMESERIES_OPTIONAL_KEYS` the run recorded
+        (``uimm-est``: ``magnitude`` and ``magnitude_sd``, ``(N, F)``).
     """
     o = result.outputs
     setup = result.setup
@@ -154,8 +156,11 @@ def run_rows(result) -> tuple[list[str], list[list]]:
     fault ``<fault>:onset_s`` (the event time, ``onset step * dt``; empty: no event),
     ``<fault>:declared_s`` (the declaring sample's time, ``(step + 1) * dt``; empty: never
     declared) and ``<fault>:declaration`` (``correct``, ``false`` or empty), then
-    ``mode_accuracy``, ``tdr``, ``far`` and ``fia`` of the run.  Retraction times will
-    join the declaration columns once declarations can be retracted (issue 13).
+    ``mode_accuracy``, ``tdr``, ``far`` and ``fia`` of the run.  A sweep with a
+    size-estimating method (``uimm-est``) adds per fault, after ``<fault>:declaration``,
+    ``<fault>:retracted_s`` (the time of its last retraction, ``(step + 1) * dt``; empty:
+    never retracted), ``<fault>:magnitude`` and ``<fault>:magnitude_sd`` (the estimate and
+    its standard deviation at the last sample; empty in another method's cells).
 
     Args:
         result: a :class:`~uimm_jax.studies.sweep_outputs.SweepResult`.
@@ -163,8 +168,11 @@ def run_rows(result) -> tuple[list[str], list[list]]:
     faults = result.faults
     dt, N = result.dt, result.num_steps
     head = ["cell", "method", "case", "magnitude", "noise_scale", "run", "seed", "noise_key"]
+    est = result.estimates
     for f in faults:
         head += [f"{f}:onset_s", f"{f}:declared_s", f"{f}:declaration"]
+        if est is not None:
+            head += [f"{f}:retracted_s", f"{f}:magnitude", f"{f}:magnitude_sd"]
     head += ["mode_accuracy", "tdr", "far", "fia"]
     false = metrics.false_declared(result.onset_step, result.decl_step)  # (C, R, F)
     rows = []
@@ -181,6 +189,8 @@ def run_rows(result) -> tuple[list[str], list[list]]:
                     metrics.sample_time(de + 1, dt) if de >= 0 else "",
                     ("false" if false[c, r, j] else "correct") if de >= 0 else "",
                 ]
+                if est is not None:
+                    row += _est_cells(est, c, r, j, dt)
             row.append(metrics.mode_accuracy(result.correct_samples[c, r], N))
             rates = {"tdr": "", "far": "", "fia": ""}
             if result.fdi is not None:
@@ -189,6 +199,14 @@ def run_rows(result) -> tuple[list[str], list[list]]:
             row += ["" if v is None else v for v in rates.values()]
             rows.append(row)
     return head, rows
+
+
+def _est_cells(est: dict, c: int, r: int, j: int, dt: float) -> list:
+    """Columns ``retracted_s``, ``magnitude``, ``magnitude_sd`` of fault j, run r, cell c."""
+    ret = int(est["retract_step"][c, r, j])
+    m, sd = float(est["magnitude"][c, r, j]), float(est["magnitude_sd"][c, r, j])
+    size = ["", ""] if np.isnan(m) else [m, sd]  # NaN: a cell of another method
+    return [metrics.sample_time(ret + 1, dt) if ret >= 0 else "", *size]
 
 
 def _key_hex(key) -> str:
