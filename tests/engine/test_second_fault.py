@@ -294,3 +294,33 @@ def test_reopen_old_widens_the_faults_kept_only_on_a_step_that_declares_another(
     np.testing.assert_array_equal(diff[off], 0.0)  # only the magnitudes' variances move
     off_rule = rules.reopen(s._replace(reopen_old=0.0), n, st, new, kept)
     np.testing.assert_array_equal(rules.mag_var(off_rule.cov, n)[0], var_in[0])
+
+
+def test_retract_rise_counts_how_long_a_retraction_hypothesis_has_been_high():
+    """``retract_rise`` (session 15): ``rise`` counts the steps each declared fault's
+    retraction hypothesis (model ``i + 1``) has stayed at or above ``RISE_LEVEL``, up to
+    ``retract_rise + 1``; it restarts at 0 below the level or when the fault is not
+    declared, so a hypothesis that jumped to the lead (a fault that ended) is told from one
+    that climbed for long (another fault's lag)."""
+    import jax.numpy as jnp
+
+    from uimm_jax.engine.uimm_est import EstSettings
+
+    s = EstSettings(retract_rise=3)
+    declared = jnp.asarray([[True, True, False], [True, True, True]])  # (F=2, runs=3)
+    p = np.array([[0.5, 0.5, 0.5], [0.2, 0.005, 0.3], [0.3, 0.495, 0.2]])  # (M=3, runs)
+    lp = jnp.log(jnp.asarray(p))
+    count = jnp.zeros((2, 3), jnp.int32)
+    seen = []
+    for _ in range(5):
+        count = rules.rise(s, declared, lp, count)
+        seen.append(np.asarray(count))
+    # fault 0's hypothesis (model 1): high in runs 0 and 2, but run 2 has it undeclared
+    np.testing.assert_array_equal(
+        [c[0] for c in seen], [[1, 0, 0], [2, 0, 0], [3, 0, 0], [4, 0, 0], [4, 0, 0]]
+    )
+    # fault 1's hypothesis (model 2): high in every run, declared in every run
+    np.testing.assert_array_equal(seen[-1][1], [4, 4, 4])
+    below = jnp.log(jnp.asarray(np.array([[0.99] * 3, [0.005] * 3, [0.005] * 3])))
+    np.testing.assert_array_equal(rules.rise(s, declared, below, count), 0)  # restarts
+    assert rules.RISE_LEVEL == 0.01

@@ -158,6 +158,26 @@ def retract_young(s: EstSettings, declared, since) -> jax.Array:
     return declared & (since >= s.retract_young) & (others > 0)
 
 
+RISE_LEVEL = 0.01
+"""The mode probability from which ``retract_rise`` counts a retraction hypothesis' rise."""
+
+
+def rise(s: EstSettings, declared, log_mode_probs, count) -> jax.Array:
+    """``retract_rise``: steps each declared fault's retraction hypothesis has been high.
+
+    ``retract_young`` holds an old fault's retraction back while another declared fault
+    grows, because "D - f_i" then measures the other fault's lag: it climbs over seconds
+    (sim 2's 10 s ramps: 0.003, 0.037, then 0.998 over 3 s; docs/faults.md, "Session
+    13 (the lead)").  A fault that ends makes it jump from below ``RISE_LEVEL`` to the
+    lead within samples.  ``count`` ``(F, *runs)`` is the number of steps "D - f_i" (model
+    ``i + 1`` while ``i`` is declared) has stayed at or above ``RISE_LEVEL``, up to
+    ``retract_rise + 1``; the hold then spares a hypothesis that rose within
+    ``retract_rise`` steps (docs/faults.md, "Session 15").
+    """
+    high = declared & (log_mode_probs[1:] >= np.log(RISE_LEVEL))
+    return jnp.where(high, jnp.minimum(count + 1, s.retract_rise + 1), 0).astype(jnp.int32)
+
+
 def challenger(declared, log_mode_probs, chal):
     """``retract_keep``: the challenger kept over a spell of a retraction hypothesis.
 

@@ -187,6 +187,7 @@ class UIMMEstDiagnoser(Diagnoser):
             jnp.zeros((F,) + tuple(runs), dtype),
             jnp.zeros(tuple(runs), jnp.int32),
             jnp.zeros((F,) + tuple(runs), bool),
+            jnp.zeros((F,) + tuple(runs), jnp.int32),
         )
 
     def step(
@@ -250,8 +251,13 @@ class UIMMEstDiagnoser(Diagnoser):
         sure = top >= jnp.log(jnp.asarray(params.threshold, dtype))
         models = np.arange(1, self.num_models).reshape((-1,) + (1,) * dec.candidate.ndim)
         ret_hyp = (dec.candidate == models) & declared & sure  # (F, *runs)
+        rise = state.rise
         if s.retract_young and rules.growth_ages(s):  # not while another still grows
-            ret_hyp = ret_hyp & ~rules.retract_young(s, declared, since)
+            held = rules.retract_young(s, declared, since)
+            if s.retract_rise:  # unless "D - f_i" jumped to the lead: f_i ended
+                rise = rules.rise(s, declared, imm_state.log_mode_probs, rise)
+                held = held & (rise > s.retract_rise)
+            ret_hyp = ret_hyp & ~held
         low = declared & (est < s.retract_below)
         low_len = jnp.where(low | ret_hyp, state.low_len + 1, 0)
         retract = low_len >= (s.retract_hold or params.hold)
@@ -292,6 +298,7 @@ class UIMMEstDiagnoser(Diagnoser):
             anchor,
             chal,
             fresh,
+            rise,
         )
         recognised = jnp.where(any_ret, new_declared, dec.candidate_set)
         step_info = info._replace(

@@ -193,6 +193,10 @@ class EstSettings(NamedTuple):
             estimate, in every model (see ``_est_rules.reopen``; docs/faults.md, "Session
             15": sim 2's valve wear at 3 on the 10 s ramps covered in 64 runs of 64, not
             57; 0 turns it off; 0.01, the default).
+        retract_rise: with ``retract_young``, an old fault's retraction hypothesis is held
+            back only if it has been above ``RISE_LEVEL`` (0.01) for more than this many
+            steps: one that rose from below it within ``retract_rise`` steps (a fault that
+            ended) retracts at once (see ``_est_rules.rise``; steps; 0: off).
     """
 
     walk: float = 1e-3
@@ -231,6 +235,7 @@ class EstSettings(NamedTuple):
     retract_young: int = 10000
     settle_creep: int = 30000
     reopen_old: float = 0.01
+    retract_rise: int = 0
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -268,6 +273,7 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "retract_young": (0, False, "steps; 0: off"),
     "settle_creep": (0, False, "steps; 0: off"),
     "reopen_old": (0.0, False, "a fraction of the estimate; 0: off"),
+    "retract_rise": (0, False, "steps; 0: off"),
 }
 _HIGH = {"restart_below": 1.0, "tangent_order": 12}
 
@@ -398,6 +404,7 @@ def est_value_from_text(name: str, text: str) -> Any:
 
 COUNTED_SETTINGS = ("restart_gap", "floor_gap", "post_gap", "settle_steps", "post_floor_gap")
 COUNTED_SETTINGS += ("retract_hold", "low_floor_age", "retract_young", "settle_creep")
+COUNTED_SETTINGS += ("retract_rise",)
 """The settings counted in steps, which :func:`settings_at_dt` converts."""
 
 
@@ -406,9 +413,9 @@ def settings_at_dt(settings: EstSettings, dt: Any) -> EstSettings:
 
     Each setting counted in steps (``restart_gap``, ``floor_gap``, ``post_gap``,
     ``settle_steps``, ``post_floor_gap``, ``retract_hold``, ``low_floor_age``,
-    ``retract_young``, ``settle_creep``) becomes ``round(count * steps_dt / dt)`` samples
-    (halves up), at least 1 unless it was 0 (off), and ``steps_dt`` becomes ``dt`` (the
-    result is its own conversion at ``dt``).
+    ``retract_young``, ``settle_creep``, ``retract_rise``) becomes
+    ``round(count * steps_dt / dt)`` samples (halves up), at least 1 unless it was 0 (off),
+    and ``steps_dt`` becomes ``dt`` (the result is its own conversion at ``dt``).
     With ``steps_dt == dt`` or ``steps_dt = 0`` it returns ``settings`` itself: the same
     numbers, bit for bit.  Not converted: the random walks (per sample; scaling them by
     ``sqrt(dt / steps_dt)`` was measured worse, :class:`EstSettings`) and the decision's
@@ -468,6 +475,8 @@ class EstState(NamedTuple):
             (``retract_keep``; zeros while it is off).
         fresh: ``(F, *runs)`` bool, the anchor is still the declaration's (``settle_low``;
             false while it is off).
+        rise: ``(F, *runs)`` int32, steps each declared fault's retraction hypothesis has
+            stayed at or above ``RISE_LEVEL`` (``retract_rise``; zeros while it is off).
     """
 
     imm: IMMState
@@ -480,6 +489,7 @@ class EstState(NamedTuple):
     anchor: jax.Array
     chal: jax.Array
     fresh: jax.Array
+    rise: jax.Array
 
 
 class EstInfo(NamedTuple):
