@@ -56,6 +56,10 @@ def case(name, *events):
     return {"name": name, "events": [{"fault": f, "time": t} for f, t in events]}
 
 
+ENDS = {"ends": (5.5, 10.0, 15.0), "ends_long": (11.5, 20.0, 30.0)}
+"""Valve wear's length (s), the second fault's ramp (s) and the run's duration (s)."""
+
+
 def cells(part):
     if part == "order":
         yield (
@@ -75,26 +79,12 @@ def cells(part):
         for sim, b in ((1, "leakage"), (2, "air_in_oil")):
             c = case(f"sim{sim}", ("valve_wear", 0.5), (b, 31.5))
             yield sim, 62.5, [c], {"magnitudes": [1.0, 3.0], "ramps": [30.0]}
-    elif part == "ends":  # an old fault ends while another still grows
+    elif part in ENDS:  # an old fault ends while another still grows
+        length, ramp, dur = ENDS[part]
         for sim, b in ((1, "leakage"), (2, "air_in_oil")):
-            c = {
-                "name": f"sim{sim}-ends",
-                "events": [
-                    {"fault": "valve_wear", "time": 0.5, "duration": 5.5},
-                    {"fault": b, "time": 3.0, "ramp": 10.0},
-                ],
-            }
-            yield sim, 15.0, [c], {"magnitudes": [1.0, 3.0]}
-    elif part == "ends_long":  # the same with an old fault 11.5 s old at its end
-        for sim, b in ((1, "leakage"), (2, "air_in_oil")):
-            c = {
-                "name": f"sim{sim}-ends-long",
-                "events": [
-                    {"fault": "valve_wear", "time": 0.5, "duration": 11.5},
-                    {"fault": b, "time": 3.0, "ramp": 20.0},
-                ],
-            }
-            yield sim, 30.0, [c], {"magnitudes": [1.0, 3.0]}
+            ev = [{"fault": "valve_wear", "time": 0.5, "duration": length}]
+            ev.append({"fault": b, "time": 3.0, "ramp": ramp})
+            yield sim, dur, [{"name": f"sim{sim}-{part}", "events": ev}], {"magnitudes": [1.0, 3.0]}
     else:
         raise SystemExit(f"unknown part {part!r}: order, three, noise, slow, ends or ends_long")
 
