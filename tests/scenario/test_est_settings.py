@@ -207,7 +207,8 @@ def test_counted_settings_keep_their_meaning_in_seconds_at_another_dt():
     slow = settings_at_dt(s, 1e-3)  # sampled 10 times slower: 10 times fewer samples
     assert (slow.settle_steps, slow.post_floor_gap, slow.retract_hold) == (300, 20, 1)
     assert (slow.low_floor_age, slow.restart_gap, slow.floor_gap, slow.post_gap) == (800, 1, 1, 0)
-    assert slow.retract_young == 1000  # 1 s either way
+    assert slow.retract_young == 6000  # 6 s either way
+    assert slow.retract_rise == 100  # 0.1 s either way
     assert slow._replace(**{k: getattr(s, k) for k in COUNTED}, steps_dt=1e-4) == s  # no other
     assert slow.steps_dt == 1e-3 and settings_at_dt(slow, 1e-3) is slow
     fast = settings_at_dt(s, 4e-5)  # 2.5 times faster: 3 * 2.5 = 7.5 rounds to 8
