@@ -6,6 +6,8 @@ under ``benchmarks/results/faults_unknown_size/``), with ``PART`` one of
 
 * ``order``: sim 1 with the faults in the other order (leakage at 0.5 s, valve wear at
   1.2 s), abrupt, magnitudes 0.5, 1, 3 (2 s runs);
+* ``order2``: the same at 0.3 and 2, and sim 2 with air in oil at 0.5 s and valve wear at
+  1.2 s at 0.5, 1, 3;
 * ``three``: all three faults of the actuator, valve wear at 0.5 s, leakage at 1.2 s, air in
   oil at 1.9 s, abrupt, magnitudes 0.5, 1, 2 (3 s runs; the bank of sim 1's file);
 * ``noise``: sim 1's and sim 2's abrupt cells at magnitude 1 with the truth's noise 2x and
@@ -68,6 +70,19 @@ def cells(part):
             [case("leak-first", ("leakage", 0.5), ("valve_wear", 1.2))],
             {"magnitudes": [0.5, 1.0, 3.0]},
         )
+    elif part == "order2":  # the other magnitudes, and sim 2 with air in oil first
+        yield (
+            1,
+            2.0,
+            [case("leak-first", ("leakage", 0.5), ("valve_wear", 1.2))],
+            {"magnitudes": [0.3, 2.0]},
+        )
+        yield (
+            2,
+            2.0,
+            [case("air-first", ("air_in_oil", 0.5), ("valve_wear", 1.2))],
+            {"magnitudes": [0.5, 1.0, 3.0]},
+        )
     elif part == "three":
         ev = (("valve_wear", 0.5), ("leakage", 1.2), ("air_in_oil", 1.9))
         yield 1, 3.0, [case("three", *ev)], {"magnitudes": [0.5, 1.0, 2.0]}
@@ -86,7 +101,9 @@ def cells(part):
             ev.append({"fault": b, "time": 3.0, "ramp": ramp})
             yield sim, dur, [{"name": f"sim{sim}-{part}", "events": ev}], {"magnitudes": [1.0, 3.0]}
     else:
-        raise SystemExit(f"unknown part {part!r}: order, three, noise, slow, ends or ends_long")
+        raise SystemExit(
+            f"unknown part {part!r}: order, three, noise, slow, ends, ends_long or order2"
+        )
 
 
 def main():
