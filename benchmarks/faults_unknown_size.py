@@ -182,14 +182,13 @@ def _rebuild_counts(setup, ys, us) -> dict:
     return {"steps": int(fired.size), "rebuild_steps": int(fired.sum())}
 
 
-def part_cost(args) -> dict:
-    """Process CPU time (the machine is shared), the two methods interleaved."""
+def cost_timings(setups: dict, truth: dict, repeats: int) -> tuple[dict, dict]:
+    """µs per step of each setup: one run of ``truth`` at the default chunk (``repeats``
+    interleaved repeats) and 64 runs of 4000 steps with the truth in the loop (onsets at
+    0.1 and 0.25 s; ``max(2, repeats)`` repeats); process CPU time, compiled first."""
     from uimm_jax.studies import sweep as sw
-    from uimm_jax.studies.run import filter_measurements, setup_scenario, simulate_scenario
+    from uimm_jax.studies.run import filter_measurements
 
-    sc = _scenario(1, 1.0)
-    setups = {m: setup_scenario(sc, m) for m in ("uimm", "uimm-est")}
-    truth = simulate_scenario(setups["uimm"], 0)
     N1 = truth["y"].shape[0]
     single = {m: [] for m in setups}
     # The default chunk (the whole 1e4-step run in one compiled call), as a user's run gets
@@ -197,7 +196,7 @@ def part_cost(args) -> dict:
     # step, paid alike by both methods) lowered the ratio from about 3.2x to 2.1x.
     for st in setups.values():  # compile
         filter_measurements(st, truth["y"], truth["u"])
-    for _ in range(args.repeats):  # interleaved
+    for _ in range(repeats):  # interleaved
         for m, st in setups.items():
             t0 = time.process_time()
             filter_measurements(st, truth["y"], truth["u"])
@@ -212,12 +211,24 @@ def part_cost(args) -> dict:
     }
     for m, st in setups.items():
         sw.run_batch(st, *inputs[m], N, N)  # compile
-    for _ in range(max(2, args.repeats)):
+    for _ in range(max(2, repeats)):
         for m, st in setups.items():
             plan, k, carry = inputs[m]
             t0 = time.process_time()
             jax.block_until_ready(sw.run_batch(st, plan, k, carry, N, N))
             batch[m].append(1e6 * (time.process_time() - t0) / (B * N))
+    return single, batch
+
+
+def part_cost(args) -> dict:
+    """Process CPU time (the machine is shared), the two methods interleaved."""
+    from uimm_jax.studies.run import setup_scenario, simulate_scenario
+
+    sc = _scenario(1, 1.0)
+    setups = {m: setup_scenario(sc, m) for m in ("uimm", "uimm-est")}
+    truth = simulate_scenario(setups["uimm"], 0)
+    single, batch = cost_timings(setups, truth, args.repeats)
+    B, N = 64, 4000
     # How often the cache is rebuilt: one run (the single-run data: fault-free to 0.5 s,
     # then both faults) and 64 runs (the same timings as the batch: onsets at 0.1 and 0.25 s).
     truths = [simulate_scenario(setups["uimm"], s) for s in range(B)]

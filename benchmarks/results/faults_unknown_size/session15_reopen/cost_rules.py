@@ -6,7 +6,6 @@ Usage (repository root): ``python .../session15_reopen/cost_rules.py [REPEATS]``
 """
 
 import sys
-import time
 from pathlib import Path
 
 import jax
@@ -21,8 +20,7 @@ sys.path.insert(0, str(HERE.parent / "session11_ramp2"))
 import ramp_false  # noqa: E402
 
 import faults_unknown_size as fus  # noqa: E402
-from uimm_jax.studies import sweep as sw  # noqa: E402
-from uimm_jax.studies.run import filter_measurements, setup_scenario, simulate_scenario  # noqa: E402
+from uimm_jax.studies.run import setup_scenario, simulate_scenario  # noqa: E402
 
 OFF = ["reopen_old=0", "settle_creep=0", "retract_rise=0", "retract_young=10000"]
 
@@ -34,31 +32,7 @@ def main():
     ramp_false._settings(OFF)
     setups["session 14"] = setup_scenario(sc, "uimm-est")
     truth = simulate_scenario(setup_scenario(sc, "uimm"), 0)
-    N1 = truth["y"].shape[0]
-    one = {m: [] for m in setups}
-    for st in setups.values():
-        filter_measurements(st, truth["y"], truth["u"])
-    for _ in range(repeats):
-        for m, st in setups.items():
-            t0 = time.process_time()
-            filter_measurements(st, truth["y"], truth["u"])
-            one[m].append(1e6 * (time.process_time() - t0) / N1)
-    B, N = 64, 4000
-    onset = np.tile(np.array([[1000, 2500, -1]]), (B, 1))
-    keys = sw.run_keys(0, B)[0]
-    inputs = {
-        m: sw.batch_inputs(st, onset, np.ones((B, 3)), np.ones(B), keys, 4, np.float64)
-        for m, st in setups.items()
-    }
-    for m, st in setups.items():
-        sw.run_batch(st, *inputs[m], N, N)
-    batch = {m: [] for m in setups}
-    for _ in range(max(2, repeats // 2)):
-        for m, st in setups.items():
-            plan, k, carry = inputs[m]
-            t0 = time.process_time()
-            jax.block_until_ready(sw.run_batch(st, plan, k, carry, N, N))
-            batch[m].append(1e6 * (time.process_time() - t0) / (B * N))
+    one, batch = fus.cost_timings(setups, truth, repeats)  # the cost part's timers
     for name, d in (("one run, us/step", one), ("64 runs, us per run-step", batch)):
         med = {m: float(np.median(v)) for m, v in d.items()}
         print(
