@@ -25,7 +25,7 @@ K0, K1 = int(os.environ.get("K0", -1)), int(os.environ.get("K1", -1))
 _count = [0]
 
 
-def _record(mean, var, lmp, declared):
+def _record(mean, var, lmp, loglik, declared):
     k = _count[0]
     _count[0] += 1
     if k % STEP == 0 or K0 <= k < K1:
@@ -45,20 +45,29 @@ def _record(mean, var, lmp, declared):
 _orig = ue.UIMMEstDiagnoser.step
 
 
-def _step(self, state, params, u, y, *, with_cov=True):
-    new, out = _orig(self, state, params, u, y, with_cov=with_cov)
-    n = self.dyn.n
-    jax.debug.callback(
-        _record,
-        new.imm.mean[n:],
-        rules.mag_var(new.imm.cov, n),
-        new.imm.log_mode_probs,
-        new.declared,
-        ordered=True,
-    )
-    return new, out
+def traced_step(record):
+    """``UIMMEstDiagnoser.step`` that also calls ``record(mean, var, log_mode_probs,
+    model_loglik, declared)`` on the host after each step (the magnitudes of every model and
+    their variances; session 15's ``trace_events.py`` uses it too)."""
+
+    def step(self, state, params, u, y, *, with_cov=True):
+        new, out = _orig(self, state, params, u, y, with_cov=with_cov)
+        n = self.dyn.n
+        jax.debug.callback(
+            record,
+            new.imm.mean[n:],
+            rules.mag_var(new.imm.cov, n),
+            new.imm.log_mode_probs,
+            out.step.model_loglik,
+            new.declared,
+            ordered=True,
+        )
+        return new, out
+
+    return step
 
 
+_step = traced_step(_record)
 ue.UIMMEstDiagnoser.step = _step
 
 if __name__ == "__main__":

@@ -12,16 +12,15 @@ wear begins): ``trace_events.py 2 2.0 2 11990 12100 'air_in_oil@0.5' 'valve_wear
 import sys
 from pathlib import Path
 
-import jax
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "session14_retract"))
 sys.path.insert(0, str(HERE.parent / "session11_ramp2"))
 import one_events  # noqa: E402
+import trace_models  # noqa: E402
 
 import uimm_jax.engine.uimm_est as ue  # noqa: E402
-from uimm_jax.engine import _est_rules as rules  # noqa: E402
 
 K = {"k": 0, "k0": 0, "k1": 0}
 
@@ -47,28 +46,10 @@ def _record(mean, var, lmp, loglik, declared):
         )
 
 
-_orig = ue.UIMMEstDiagnoser.step
-
-
-def _step(self, state, params, u, y, *, with_cov=True):
-    new, out = _orig(self, state, params, u, y, with_cov=with_cov)
-    n = self.dyn.n
-    jax.debug.callback(
-        _record,
-        new.imm.mean[n:],
-        rules.mag_var(new.imm.cov, n),
-        new.imm.log_mode_probs,
-        out.step.model_loglik,
-        new.declared,
-        ordered=True,
-    )
-    return new, out
-
-
 if __name__ == "__main__":
     argv = sys.argv[1:]
     pos = argv[: argv.index("--")] if "--" in argv else argv
     K["k0"], K["k1"] = int(pos[3]), int(pos[4])
     sys.argv = [sys.argv[0], *pos[:3], *pos[5:], *argv[len(pos) :]]
-    ue.UIMMEstDiagnoser.step = _step
+    ue.UIMMEstDiagnoser.step = trace_models.traced_step(_record)
     one_events.main()
