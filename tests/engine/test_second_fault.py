@@ -324,3 +324,57 @@ def test_retract_rise_counts_how_long_a_retraction_hypothesis_has_been_high():
     below = jnp.log(jnp.asarray(np.array([[0.99] * 3, [0.005] * 3, [0.005] * 3])))
     np.testing.assert_array_equal(rules.rise(s, declared, below, count), 0)  # restarts
     assert rules.RISE_LEVEL == 0.01
+
+
+def test_floor_z_restarts_a_hypothesis_resting_near_its_floor_only_while_a_fault_is_declared():
+    """``floor_z`` (session 16): while every declared fault has settled, an undeclared
+    hypothesis whose estimate is within ``floor_z`` sds of its floor and whose probability
+    is below ``NEAR_FLOOR_MU`` counts as held at the floor and restarts from the prior (at
+    most every ``post_floor_gap`` steps), though its probability is above
+    ``restart_below``; with ``floor_z = 0`` only one at the floor does, and while nothing
+    is declared the floor is the plain one."""
+    import functools
+
+    import jax
+    import jax.numpy as jnp
+
+    from uimm_jax.engine.imm import IMMState
+
+    diag = _diag()
+    n, F, M = diag.dyn.n, diag.num_faults, diag.num_models
+    base = diag.settings._replace(post_floor_means=(), post_floor_mean=0.02, floor_mean=0.05)
+    # runs: air in oil declared (0, 1, 3: valve wear's own hypothesis at 0.049, 0.15 and
+    # 0.049, sd 0.038; run 3 with probability 0.3) and nothing declared (2: at 0.06)
+    declared = jnp.asarray([[False] * 4, [False] * 4, [True, True, False, True]])
+    mean = np.zeros((n + F, M, 4))
+    mean[n + 2, :, [0, 1, 3]] = 1.0  # air in oil's estimate, every model
+    mean[n, 1] = [0.049, 0.15, 0.06, 0.049]  # valve wear's own hypothesis (slot 1)
+    mean[n + 1, 2] = 0.5  # leakage's, far from its floor
+    var = np.full(F, 1e-4)
+    var[0] = 0.038**2
+    cov = np.broadcast_to(
+        np.diag(np.r_[np.full(n, 1e-4), var])[..., None, None], (n + F, n + F, M, 4)
+    ).copy()
+    mu = np.array([[0.9] * 3 + [0.65], [0.05] * 3 + [0.3], [0.04] * 4, [0.01] * 4])
+    assert rules.NEAR_FLOOR_MU == 0.2
+    state = IMMState(jnp.asarray(mean), jnp.asarray(cov), jnp.log(jnp.asarray(mu)))
+    use = diag.model_sets(declared)
+    restarted = {}
+    s0 = base._replace(post_floor_gap=200, settle_steps=3000)
+    assert rules.growth_ages(s0)  # a declared fault's ``since`` is its age
+    cases = [(0.0, 1000, 5000), (2.0, 1000, 5000), (2.0, 10, 5000), (2.0, 1000, 100)]
+    for z, age, air_age in cases:
+        # since: the hypotheses' steps since their last restart (beyond post_floor_gap or
+        # not), air in oil's age (settled, or grown within settle_steps)
+        s = s0._replace(floor_z=z)
+        reset = jax.jit(functools.partial(rules.reset_unused, s, n))
+        since = jnp.asarray([[age] * 4, [age] * 4, [air_age] * 4], jnp.int32)
+        got, new_since = reset(state, use, declared, since)
+        again = np.isclose(np.asarray(got.mean[n, 1]), s.prior_mean)
+        np.testing.assert_array_equal(np.asarray(new_since[0]) == 1, again)
+        np.testing.assert_allclose(np.asarray(got.mean[n + 1, 2]), 0.5)  # leakage kept
+        restarted[z, age, air_age] = again.tolist()
+    assert restarted[0.0, 1000, 5000] == [False] * 4
+    assert restarted[2.0, 1000, 5000] == [True, False, False, False]  # 0.049 <= 0.02 + 2 x 0.038
+    assert restarted[2.0, 10, 5000] == [False] * 4  # not before post_floor_gap
+    assert restarted[2.0, 1000, 100] == [False] * 4  # not while air in oil still grows

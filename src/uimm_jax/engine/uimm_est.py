@@ -37,7 +37,9 @@ fault settles (docs/faults.md, "Session 13"), ``retract_young`` keeps an old fau
 retraction hypothesis from retracting it while another declared fault still grows
 (docs/faults.md, "Session 14"), ``settle_creep`` lets a lone settled fault's anchor follow
 its estimate away from nominal, and ``reopen_old`` re-opens the faults already declared
-when another is (docs/faults.md, "Session 15").  Since session 11 the defaults are the
+when another is (docs/faults.md, "Session 15"); ``floor_z`` restarts a hypothesis that
+rests near its floor, unable to follow its fault, while the declared faults have settled
+(docs/faults.md, "Session 16").  Since session 11 the defaults are the
 settings "S10a" of docs/faults.md (all of these on but ``post_gap``; ``post_floor_means``
 is per fault, so it is empty by default and set by the actuator's scenario files;
 :class:`EstSettings`).

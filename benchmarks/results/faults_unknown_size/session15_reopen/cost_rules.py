@@ -2,7 +2,9 @@
 with ``reopen_old``, ``settle_creep`` and ``retract_rise`` off and ``retract_young`` at
 session 14's 10000, interleaved in one process (the ``cost`` part's data and timers).
 
-Usage (repository root): ``python .../session15_reopen/cost_rules.py [REPEATS]``.
+Usage (repository root): ``python .../session15_reopen/cost_rules.py [REPEATS] [-- NAME=VALUE
+...]``; with ``--`` the defaults are timed against the defaults changed so (session 16:
+``-- floor_z=0``).
 """
 
 import sys
@@ -26,11 +28,15 @@ OFF = ["reopen_old=0", "settle_creep=0", "retract_rise=0", "retract_young=10000"
 
 
 def main():
-    repeats = int(sys.argv[1]) if len(sys.argv) > 1 else 7
+    argv = sys.argv[1:]
+    pos = argv[: argv.index("--")] if "--" in argv else argv
+    sets = argv[argv.index("--") + 1 :] if "--" in argv else OFF
+    new, old = ("session 15", "session 14") if sets is OFF else ("defaults", " ".join(sets))
+    repeats = int(pos[0]) if pos else 7
     sc = fus._scenario(1, 1.0)
-    setups = {"session 15": setup_scenario(sc, "uimm-est")}
-    ramp_false._settings(OFF)
-    setups["session 14"] = setup_scenario(sc, "uimm-est")
+    setups = {new: setup_scenario(sc, "uimm-est")}
+    ramp_false._settings(sets)
+    setups[old] = setup_scenario(sc, "uimm-est")
     truth = simulate_scenario(setup_scenario(sc, "uimm"), 0)
     one, batch = fus.cost_timings(setups, truth, repeats)  # the cost part's timers
     for name, d in (("one run, us/step", one), ("64 runs, us per run-step", batch)):
@@ -38,7 +44,7 @@ def main():
         print(
             f"{name}: "
             + ", ".join(f"{m} {med[m]:.3f} ({min(d[m]):.3f}-{max(d[m]):.3f})" for m in d)
-            + f"; ratio {med['session 15'] / med['session 14']:.3f}"
+            + f"; ratio {med[new] / med[old]:.3f}"
         )
 
 
