@@ -188,12 +188,12 @@ def kalman_filter(A, B, C, Q, R, x0, P0, inputs, measurements):
     Single-model arrays: ``A (n,n)``, ``B (n,p)``, ``C (m,n)``, ``Q (n,n)``, ``R (m,m)``.
 
     Returns:
-        dict with ``mean (N,n)``, ``cov (N,n,n)``, ``loglik (N,)`` and
-        ``marginal_loglik`` (their sum).
+        dict with ``mean (N,n)``, ``cov (N,n,n)``, ``loglik (N,)``, ``nis (N,)`` (the
+        innovation's ``e' S^-1 e``) and ``marginal_loglik`` (the sum of ``loglik``).
     """
     x = np.asarray(x0, dtype=np.float64)
     P = np.asarray(P0, dtype=np.float64)
-    means, covs, lls = [], [], []
+    means, covs, lls, nis = [], [], [], []
     for u, y in zip(np.asarray(inputs), np.asarray(measurements), strict=True):
         x = A @ x + B @ u
         P = A @ P @ A.T + Q
@@ -206,6 +206,7 @@ def kalman_filter(A, B, C, Q, R, x0, P0, inputs, measurements):
         P = 0.5 * (P + P.T)
         _, logdet = np.linalg.slogdet(2.0 * np.pi * S)
         lls.append(-0.5 * (logdet + e @ S_inv @ e))
+        nis.append(e @ S_inv @ e)
         means.append(x)
         covs.append(P)
     lls = np.asarray(lls)
@@ -213,6 +214,7 @@ def kalman_filter(A, B, C, Q, R, x0, P0, inputs, measurements):
         "mean": np.asarray(means),
         "cov": np.asarray(covs),
         "loglik": lls,
+        "nis": np.asarray(nis),
         "marginal_loglik": float(lls.sum()),
     }
 

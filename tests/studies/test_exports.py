@@ -232,3 +232,53 @@ def test_diagnoser_true_set_log_prob_is_the_generic_definition(method):
     assert (want > 0).sum() > B // 4
     if method == "uimm":  # some true sets are held by no model of the bank
         assert (want == 0).sum() > 0
+
+
+def test_run_exports_the_leading_models_nis_and_summarises_it(run_out):
+    """``nis`` in timeseries.npz/csv is the most probable model's ``e' S^-1 e`` per channel
+    (``chi^2_3 / 3`` at the filter's own noise: its median is 0.79, its mean 1), and
+    summary.json's ``innovation_check`` is its mean, with a consistent verdict."""
+    summary = json.loads((run_out / "summary.json").read_text())
+    with np.load(run_out / "timeseries.npz") as z:
+        nis = z["nis"]
+    assert nis.shape == (summary["num_steps"],) and np.all(nis >= 0)
+    ic = summary["innovation_check"]
+    assert ic["mean_nis_per_channel"] == pytest.approx(float(np.mean(nis)), rel=1e-12)
+    assert 0.9 < ic["mean_nis_per_channel"] < 1.1 and ic["verdict"] == "consistent"
+    assert ic["samples"] == nis.size and ic["band_99"][0] < 1.0 < ic["band_99"][1]
+    assert 0.7 < np.median(nis) < 0.9  # chi^2_3 / 3: 0.789
+    rows = list(csv.DictReader((run_out / "timeseries.csv").open()))
+    for r in rows[::41]:
+        assert float(r["nis"]) == pytest.approx(nis[int(r["step"])], rel=1e-9)
+
+
+@pytest.mark.parametrize(("scale", "verdict"), [(2.0, "noise too small"), (0.5, "noise too large")])
+def test_innovation_check_flags_measurement_noise_the_filter_misjudges(scale, verdict):
+    """The truth's measurement noise sd x2 (x0.5), the filter's as given: the NIS scales by
+    4 (0.25) on the two channels whose innovation the noise dominates and stays about 1 on
+    the third (its innovation is the state's), so the mean per channel is about (2 x 4 +
+    1) / 3 = 3 ((2 x 0.25 + 1) / 3 = 0.5), and the verdict says so."""
+    from _robustness_helpers import short_dict
+    from uimm_jax.scenario.parse import parse_scenario
+    from uimm_jax.studies.run import execute_run, filter_measurements, setup_scenario
+
+    d = short_dict(1, duration=0.3, events=(0.1, 0.2))
+    sc = parse_scenario(d)
+    d["noise"]["measurement"] = [v * scale**2 for v in d["noise"]["measurement"]]
+    truth = setup_scenario(parse_scenario(d))
+    r = execute_run(setup_scenario(sc), filter_measurements, truth_setup=truth, seed=0)
+    ic = r.summary["innovation_check"]
+    assert ic["verdict"] == verdict
+    assert ic["mean_nis_per_channel"] == pytest.approx((2 * scale**2 + 1) / 3, rel=0.1)
+
+
+def test_innovation_check_of_chi_square_samples_and_of_nothing_observed():
+    rng = np.random.default_rng(0)
+    m = 3
+    ok = metrics.innovation_check(rng.chisquare(m, 20_000) / m)
+    assert ok["verdict"] == "consistent"
+    assert ok["band_99"][0] <= ok["mean_nis_per_channel"] <= ok["band_99"][1]
+    big = metrics.innovation_check(4.0 * rng.chisquare(m, 1000) / m)
+    assert big["verdict"] == "noise too small"
+    none = metrics.innovation_check(np.full(5, np.nan))
+    assert none["verdict"] is None and none["samples"] == 0

@@ -438,3 +438,26 @@ def test_huge_finite_or_missing_measurements_are_accepted():
         problem["measurements"] = np.asarray(values)[:, None]
         out = run_engine(problem)
         assert np.all(np.isfinite(out["mode_probs"]))
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_nis_is_the_kalman_filters_innovation_quadratic_form_and_off_by_default(seed):
+    """``outputs=("nis", ...)``: each model's ``e' S^-1 e`` (eq. 27's quadratic term) is the
+    textbook Kalman filter's for one model; the default call leaves it out (``None``), so
+    its bytes per step are as measured in benchmarks/README.md."""
+    problem = make_linear_problem(seed, M=1, n=3, m=2, p=1, N=150)
+    kf = kalman_filter(
+        *(problem[key][0] for key in ("A", "B", "C", "Q", "R", "x0", "P0")),
+        problem["inputs"],
+        problem["measurements"],
+    )
+    bank = uimm_jax.LinearGaussianBank(
+        problem["A"], problem["B"], problem["C"], problem["Q"], problem["R"]
+    )
+    args = (bank, problem["transition"], problem["mu0"], problem["x0"], problem["P0"])
+    data = (problem["inputs"], problem["measurements"])
+    out = uimm_jax.imm_filter(*args, *data, outputs=("nis", "model_loglik"))
+    assert out.nis.shape == (150, 1)
+    np.testing.assert_allclose(out.nis[:, 0], kf["nis"], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(out.model_loglik[:, 0], kf["loglik"], rtol=1e-10, atol=1e-12)
+    assert uimm_jax.imm_filter(*args, *data).nis is None

@@ -161,6 +161,13 @@ def _print_summary(s: dict) -> None:
         print(f"  retracted {r['fault']:<19s} at {r['time']:8.4f} s  [{tag}]")
     print(f"false declarations  {s['false_declarations']}")
     print(f"mode accuracy       {s['mode_accuracy']:.4f}")
+    ic = s.get("innovation_check") or {}
+    if ic.get("verdict"):  # the leading model's NIS per channel: 1 when the noise fits
+        hint = "" if ic["verdict"] == "consistent" else " (check [noise] against the data)"
+        print(
+            f"innovation check    mean NIS per channel {ic['mean_nis_per_channel']:.3g} "
+            f"(1 expected): {ic['verdict']}{hint}"
+        )
     comp = s.get("compile_s")
     # One chunk (a short run) gives no steady-state rate: its time includes compilation.
     how = f"steady state, compile {comp:.1f} s" if comp is not None else "compilation included"

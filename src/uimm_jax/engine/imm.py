@@ -91,6 +91,10 @@ class StepInfo(NamedTuple):
         mean: ``(n, *runs)`` combined estimate (eq. 30).
         cov: ``(n, n, *runs)`` combined covariance (eq. 31), or ``(0,)`` when not asked.
         health: ``(*runs,)`` int32 bit flags (``HEALTH_*``).
+        nis: ``(M, *runs)`` each model's normalised innovation squared ``e' S^-1 e`` over
+            the observed channels (the quadratic term of eq. 27; 0 when none is observed):
+            ``chi^2`` with as many degrees of freedom as observed channels when the
+            model and its noise covariances are the data's.
     """
 
     log_mode_probs: jax.Array
@@ -99,6 +103,7 @@ class StepInfo(NamedTuple):
     mean: jax.Array
     cov: jax.Array
     health: jax.Array
+    nis: jax.Array
 
 
 def log_normalize(log_w: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -390,5 +395,6 @@ def imm_step(
         mean=xc,
         cov=Pc if with_cov else jnp.zeros((0,), dtype),
         health=health.astype(jnp.int32),
+        nis=res.nis,
     )
     return IMMState(x_new, P_new, log_mu), info

@@ -350,6 +350,46 @@ def mode_accuracy(correct_samples, samples: int) -> float:
     return float(np.sum(correct_samples)) / samples if samples else float("nan")
 
 
+NIS_BAND = (0.8, 1.25)
+"""The mean of the leading model's NIS per channel that :func:`innovation_check` calls
+consistent.  It is 1.00 on the paper's scenarios (matched noise) and 3.03 with the data's
+measurement noise twice the filter's standard deviation; where the measurement noise
+dominates the innovation, a mean of 1.25 is a noise standard deviation about 12 % too
+small (docs/montecarlo.md, "Innovation check")."""
+
+
+def innovation_check(nis) -> dict:
+    """Whether the filter's noise covariances fit the data: ``summary.json``'s check.
+
+    ``nis`` ``(N,)`` is the most probable model's normalised innovation squared per
+    observed channel at each step (:func:`uimm_jax.engine.scan.leading_nis`; NaN where
+    nothing was observed), ``chi^2_m / m`` of mean 1 when the model and its noise are the
+    data's.  Returns its mean over the observed steps, the expected 1, the two-sided 99 %
+    band of that mean under consistency (independent innovations, 1 channel per step at
+    least: ``1 +- 2.576 sqrt(2 / samples)``, a bound on the pure sampling spread), the
+    count of steps, and ``verdict``: ``"consistent"`` inside :data:`NIS_BAND`, else
+    ``"noise too small"`` (the data vary more than ``Q`` and ``R`` allow) or ``"noise too
+    large"``; ``None`` without an observed step.
+    """
+    nis = np.asarray(nis, np.float64)
+    seen = nis[np.isfinite(nis)]
+    out = {"mean_nis_per_channel": None, "expected": 1.0, "band_99": None, "samples": 0}
+    if not seen.size:
+        return out | {"verdict": None}
+    mean = float(np.mean(seen))
+    half = 2.5758293035489004 * np.sqrt(2.0 / seen.size)
+    lo, hi = NIS_BAND
+    verdict = "consistent"
+    if not lo <= mean <= hi:
+        verdict = "noise too small" if mean > hi else "noise too large"
+    return out | {
+        "mean_nis_per_channel": mean,
+        "band_99": [1.0 - half, 1.0 + half],
+        "samples": int(seen.size),
+        "verdict": verdict,
+    }
+
+
 def health_counts(health) -> dict[str, int]:
     """How many entries (steps, or runs of OR-ed flags) carry each health bit, by name."""
     health = np.asarray(health)

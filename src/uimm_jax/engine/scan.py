@@ -47,14 +47,18 @@ __all__ = [
     "diagnose_scan",
     "drop_batch_of_one",
     "filter_chunk",
+    "leading_nis",
     "scan_chunked",
     "simulate_diagnose",
     "truth_sample",
     "truth_scan",
 ]
 
-FILTER_OUTPUTS = ("mode_probs", "mean", "recognised", "declared", "health")
-"""Per-step outputs :func:`filter_chunk` keeps by default (``"cov"`` may be added)."""
+FILTER_OUTPUTS = ("mode_probs", "mean", "recognised", "declared", "health", "nis")
+"""Per-step outputs :func:`filter_chunk` keeps by default (``"cov"`` may be added).
+
+``nis`` is the most probable model's normalised innovation squared per observed channel
+(:func:`leading_nis`)."""
 
 ESTIMATE_OUTPUTS = ("magnitude", "magnitude_sd")
 """Per-step outputs of a size-estimating diagnoser (``(F,)`` estimate and its sd)."""
@@ -290,6 +294,7 @@ def filter_chunk(diag, params, state, k0, uy, outputs: tuple[str, ...] = FILTER_
             "cov": lambda: info.step.cov,
             "magnitude": lambda: info.magnitude,
             "magnitude_sd": lambda: info.magnitude_sd,
+            "nis": lambda: leading_nis(info.step, y),
         }
         return st, tuple(avail[name]() for name in outputs)
 
@@ -297,6 +302,22 @@ def filter_chunk(diag, params, state, k0, uy, outputs: tuple[str, ...] = FILTER_
     if single:
         state, outs = drop_batch_of_one(state), drop_batch_of_one(outs)
     return state, outs
+
+
+def leading_nis(info, y: jax.Array) -> jax.Array:
+    """The most probable model's ``e' S^-1 e`` per observed channel, ``(*runs,)``.
+
+    ``info`` is the step's :class:`~uimm_jax.engine.imm.StepInfo` (posterior mode
+    probabilities and each model's ``nis``), ``y`` ``(m, *runs)`` the measurement (NaN:
+    missing).  When the leading model and the filter's noise covariances are the data's,
+    it is ``chi^2_m / m``, of mean 1 (``m`` observed channels); NaN when no channel is
+    observed.  ``summary.json``'s ``innovation_check`` averages it.
+    """
+    lead = jnp.argmax(info.log_mode_probs, axis=0)
+    models = jnp.arange(info.nis.shape[0]).reshape((-1,) + (1,) * lead.ndim)
+    nis = jnp.sum(jnp.where(models == lead, info.nis, 0.0), axis=0)
+    m = jnp.sum(jnp.isfinite(y), axis=0)
+    return jnp.where(m > 0, nis / jnp.maximum(m, 1).astype(nis.dtype), jnp.nan)
 
 
 def as_batch_of_one(tree):

@@ -32,12 +32,15 @@ __all__ = [
 TIMESERIES_KEYS = ("time", "mode_probs", "recognised", "declared", "mean", "health")
 """Arrays of every ``timeseries.npz`` (see :func:`timeseries_arrays`)."""
 
-TIMESERIES_OPTIONAL_KEYS = ("magnitude", "magnitude_sd")
+TIMESERIES_OPTIONAL_KEYS = ("magnitude", "magnitude_sd", "nis")
 """Per-step outputs that some runs record, exported under the same name when a run's
 ``outputs`` holds them: a size-estimating diagnoser's (``uimm-est``) fault-size estimate
 ``magnitude`` ``(N, F)`` and its standard deviation ``magnitude_sd`` ``(N, F)``, per fault
 (model 0's for a declared fault, its hypothesis' own for an undeclared one; the 95 %
-interval is ``magnitude +- 1.96 magnitude_sd``, as in ``summary.json``)."""
+interval is ``magnitude +- 1.96 magnitude_sd``, as in ``summary.json``); and ``nis``
+``(N,)``, the most probable model's normalised innovation squared per observed channel
+(mean 1 when the filter's noise is the data's; NaN where nothing was observed;
+:func:`uimm_jax.engine.scan.leading_nis`)."""
 
 
 def timeseries_arrays(result) -> dict[str, np.ndarray]:
@@ -54,7 +57,8 @@ def timeseries_arrays(result) -> dict[str, np.ndarray]:
         fault-set code (the scenario's events for measured data); the names
         ``model_labels``, ``faults``, ``states`` and ``health_flags`` (bit values) as
         arrays; and each key of :data:`TIMESERIES_OPTIONAL_KEYS` the run recorded
-        (``uimm-est``: ``magnitude`` and ``magnitude_sd``, ``(N, F)``).
+        (``uimm-est``: ``magnitude`` and ``magnitude_sd``, ``(N, F)``; every run of
+        :func:`~uimm_jax.studies.run.filter_measurements`: ``nis`` ``(N,)``).
     """
     o = result.outputs
     setup = result.setup
@@ -126,11 +130,12 @@ def write_timeseries_csv(result, path: str | Path, *, every: int | None = None) 
     extra = [k for k in TIMESERIES_OPTIONAL_KEYS if k in a]
     for k in extra:
         width = a[k].reshape(N, -1).shape[1]
-        head += (
-            [f"{k}:{f}" for f in faults]
-            if width == len(faults)
-            else [f"{k}:{i}" for i in range(width)]
-        )
+        if a[k].ndim == 1:  # one value a step
+            head += [k]
+        elif width == len(faults):
+            head += [f"{k}:{f}" for f in faults]
+        else:
+            head += [f"{k}:{i}" for i in range(width)]
     path = Path(path)
     with path.open("w", newline="") as fh:
         w = csv.writer(fh)

@@ -71,6 +71,10 @@ class IMMResult(NamedTuple):
         marginal_loglik: scalar ``log p(y_0..y_{N-1})``.
         health: ``(N,)`` int32 bit flags (see :mod:`uimm_jax.engine.imm`).
         model_mean: ``(N, M, n)`` per-model posterior means, or ``None``.
+        nis: ``(N, M)`` each model's normalised innovation squared ``e' S^-1 e`` over the
+            observed channels (0 where none is observed): ``chi^2`` with as many degrees
+            of freedom as observed channels when the model and its noise are the data's.
+            Only when named in ``outputs`` (not in the default set).
 
     A field left out by :func:`imm_filter`'s ``outputs`` (or its ``return_cov`` and
     ``return_model_means`` flags) is ``None``.
@@ -85,6 +89,7 @@ class IMMResult(NamedTuple):
     marginal_loglik: jax.Array
     health: jax.Array
     model_mean: jax.Array | None = None
+    nis: jax.Array | None = None
 
 
 def _warn_if_float32(dtype) -> None:
@@ -124,6 +129,7 @@ _SCAN_FIELD = {
     "marginal_loglik": "loglik_increment",
     "health": "health",
     "model_mean": "model_mean",
+    "nis": "nis",
 }
 
 
@@ -172,6 +178,7 @@ def _check_outputs(outputs, return_model_means: bool, return_cov: bool) -> tuple
     """The IMMResult fields to compute: ``outputs`` checked, or the flags' default set."""
     if outputs is None:
         drop = ("cov",) * (not return_cov) + ("model_mean",) * (not return_model_means)
+        drop += ("nis",)  # on request only: the default call's bytes stay as measured
         return tuple(k for k in IMMResult._fields if k not in drop)
     if return_model_means or not return_cov:
         raise ValueError(
@@ -353,7 +360,8 @@ def imm_filter(
             ``("mode_probs", "mean")``; the others are ``None``, and what they alone need
             is neither computed nor stored.  Every field returned is bit for bit the one
             the default call returns.  ``None`` (the default) returns every field but
-            ``model_mean`` (with ``return_cov`` and ``return_model_means`` as above); give
+            ``model_mean`` and ``nis`` (with ``return_cov`` and ``return_model_means`` as
+            above; ``nis`` only when named here); give
             either ``outputs`` or those two flags.  ``("mode_probs", "mean", "health")``
             measured 1.1-1.2x the engine issue's reference step on the actuator bank at
             1e6 steps, against 1.5x for the default (``benchmarks/README.md``).

@@ -284,8 +284,10 @@ def filter_measurements(
     Returns:
         ``(final_state, outputs)`` with outputs a dict of per-step NumPy arrays:
         ``mode_probs`` (N, M), ``mean`` (N, n), ``recognised`` (N,), ``declared`` (N,),
-        ``health`` (N,) and, with ``with_cov``, ``cov`` (N, n, n).  ``timings``, if given,
-        receives ``(steps, seconds)`` per chunk (the first includes compilation).
+        ``health`` (N,), ``nis`` (N,) (the leading model's NIS per observed channel,
+        :func:`~uimm_jax.engine.scan.leading_nis`) and, with ``with_cov``, ``cov``
+        (N, n, n).  ``timings``, if given, receives ``(steps, seconds)`` per chunk (the
+        first includes compilation).
     """
     sc = setup.scenario
     y, u = check_run_data(setup, y, u, chunk)
@@ -525,6 +527,9 @@ def summarize(
     steady-state rate of the chunks after the first and ``compile_s`` estimates the
     compilation time (first chunk minus its steady-state share).  ``est_settings``: every
     ``EstSettings`` field of a ``uimm-est`` run (``[filter.est]``), ``None`` for the others.
+    ``innovation_check`` (:func:`~uimm_jax.engine.metrics.innovation_check`): the mean of
+    the leading model's NIS per channel against its expected 1, and whether the filter's
+    noise fits the data (``None`` without the per-step ``nis`` output).
     """
     sc, diag = setup.scenario, setup.diagnoser
     names = list(setup.table.names)
@@ -581,6 +586,7 @@ def summarize(
         "false_declaration_list": false,
         "mode_accuracy": metrics.mode_accuracy(correct, N),
         **fdi,
+        "innovation_check": metrics.innovation_check(outputs["nis"]) if "nis" in outputs else None,
         "transition": setup.transition.tolist(),
         "initial_mode_probs": setup.initial_mode_probs.tolist(),
         "threshold": float(sc.filter.decision.threshold),
