@@ -381,6 +381,7 @@ def test_sweep_matches_loop_of_single_runs(sweep):
         ref_false = 0
         ref_correct = 0.0
         ref_sq = np.zeros(3)
+        ref_nis = 0.0
         for r in range(RUNS):
             s, ev_steps, x, mean = _reference(sc, cell, r)
             # Onsets (drawn in windows) and declarations, run by run.
@@ -392,6 +393,10 @@ def test_sweep_matches_loop_of_single_runs(sweep):
             np.testing.assert_array_equal(sweep.decl_step[c, r], want_decl)
             assert sweep.false_declared()[c, r].sum() == s["false_declarations"]
             assert sweep.correct_samples[c, r] / N == s["mode_accuracy"]
+            # The innovation check: the sweep's on-device sum = the single run's summary.
+            mean_nis = s["innovation_check"]["mean_nis_per_channel"]
+            assert sweep.nis[c, r] / N == pytest.approx(mean_nis, rel=1e-9)
+            ref_nis += mean_nis
             # TDR, FAR, FIA: accumulated on the device = computed on the host (one definition).
             got = metrics.fdi_rates(metrics.FDICounts(*(a[c, r] for a in sweep.fdi)), N)
             assert (got["tdr"], got["far"]) == (s["tdr"], s["far"])
@@ -423,6 +428,7 @@ def test_sweep_matches_loop_of_single_runs(sweep):
         np.testing.assert_allclose(
             list(summ["state_rmse"].values()), np.sqrt(ref_sq / (RUNS * N)), rtol=1e-9
         )
+        assert summ["mean_nis_per_channel"] == pytest.approx(ref_nis / RUNS, rel=1e-9)
         detected_any += sum(len(v) for v in ref_delays.values())
         false_any += ref_false
     # The small sweep exercises both detections and misses.
@@ -566,6 +572,17 @@ def test_runs_csv_one_row_per_run(sweep, tmp_path):
         assert acc == pytest.approx(summ["mode_accuracy"], rel=1e-12)
     assert {"tdr", "far", "fia"} <= set(sweep.summaries[0])
     assert any(row[f"{f}:declaration"] == "correct" for row in rows for f in faults)
+    # The innovation check per run and per cell: noise_scale 2 doubles the truth's process
+    # and measurement noise sd, so every channel's NIS is about 4x.
+    for c, summ in enumerate(sweep.summaries):
+        nis = [float(row["nis"]) for row in rows if int(row["cell"]) == c]
+        assert np.mean(nis) == pytest.approx(summ["mean_nis_per_channel"], rel=1e-12)
+    free = {
+        s["noise_scale"]: s["mean_nis_per_channel"]
+        for s in sweep.summaries
+        if s["case"] == "fault-free"
+    }
+    assert 0.8 < free[1.0] < 1.25 and 3.5 < free[2.0] / free[1.0] < 4.5
 
 
 def test_cli_sweep_reports_bad_field(tmp_path, capsys):

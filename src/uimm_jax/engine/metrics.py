@@ -183,6 +183,8 @@ class RunMetrics(NamedTuple):
         sq_err: ``(n, B)`` sum over steps of the squared combined-estimate error.
         health: ``(B,)`` int32 OR of the per-step health flags.
         fdi: :class:`FDICounts` of each run, ``(B,)`` leaves (TDR, FAR, FIA).
+        nis: ``(B,)`` sum over the observed steps of the most probable model's NIS per
+            channel (:func:`uimm_jax.engine.scan.leading_nis`; :func:`innovation_check`).
     """
 
     decl_step: jax.Array
@@ -190,6 +192,7 @@ class RunMetrics(NamedTuple):
     sq_err: jax.Array
     health: jax.Array
     fdi: FDICounts
+    nis: jax.Array
 
 
 def init_metrics(runs: int, num_faults: int, state_dim: int, dtype) -> RunMetrics:
@@ -202,6 +205,7 @@ def init_metrics(runs: int, num_faults: int, state_dim: int, dtype) -> RunMetric
         fdi=FDICounts(
             *(jnp.zeros((runs,), jnp.int32) for _ in range(3)), jnp.zeros((runs,), dtype)
         ),
+        nis=jnp.zeros((runs,), dtype),
     )
 
 
@@ -220,7 +224,7 @@ def new_declarations(decl_step: jax.Array, before: jax.Array, after: jax.Array, 
 
 
 def update_metrics(
-    m: RunMetrics, k, before, after, recognised, code, mean, x, health, true_prob
+    m: RunMetrics, k, before, after, recognised, code, mean, x, health, true_prob, nis
 ) -> RunMetrics:
     """One step of the :class:`RunMetrics` accumulators.
 
@@ -236,6 +240,8 @@ def update_metrics(
         health: ``(B,)`` health bits of the step.
         true_prob: ``(B,)`` mode probability of the true fault set
             (:func:`true_set_probability`).
+        nis: ``(B,)`` the leading model's NIS per channel (NaN: nothing observed, not
+            summed; a simulated truth observes every channel).
     """
     err = mean - x
     terms = fdi_terms(code, set_codes(after), true_prob)
@@ -245,6 +251,7 @@ def update_metrics(
         sq_err=m.sq_err + err * err,
         health=m.health | health,
         fdi=FDICounts(*(a + t.astype(a.dtype) for a, t in zip(m.fdi, terms, strict=True))),
+        nis=m.nis + jnp.where(jnp.isfinite(nis), nis, 0.0).astype(m.nis.dtype),
     )
 
 

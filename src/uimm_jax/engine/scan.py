@@ -224,6 +224,7 @@ def diagnose_scan(diag, p: int, params, carry: SimCarry, ks, us, xs, ys, codes) 
             x,
             info.step.health,
             jnp.exp(lp),
+            leading_nis(info.step, y),
         )
         e = c.est
         if e is not None:

@@ -414,6 +414,7 @@ def run_sweep(
                 sq_err=m.sq_err[:, :real].T,
                 health=m.health[:real],
                 **{f"fdi_{k}": v[:real] for k, v in m.fdi._asdict().items()},
+                nis=m.nis[:real],
             )
             for name, value in got.items():
                 getattr(fin, name)[c, r] = value
@@ -449,6 +450,7 @@ def run_sweep(
         sq_err=sq_err,
         health=health,
         fdi=fdi,
+        nis=fin.nis,
         noise_keys=noise_keys,
         true_magnitude=mag_arr,
         end_step=end_arr,

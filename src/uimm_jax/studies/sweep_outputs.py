@@ -30,7 +30,11 @@ writes them.
 * ``tdr``, ``far``, ``fia``: the standard per-sample FDI rates (true detection rate,
   false alarm rate, fault isolation accuracy) pooled over the cell's samples, as defined
   in :mod:`uimm_jax.engine.metrics`;
-* ``state_rmse``: root mean square of the combined estimate's error, per state.
+* ``state_rmse``: root mean square of the combined estimate's error, per state;
+* ``mean_nis_per_channel``: the most probable model's normalised innovation squared per
+  channel, averaged over the cell's samples: 1 when the filter's noise is the truth's
+  (the innovation check of a run, :func:`uimm_jax.engine.metrics.innovation_check`;
+  ``noise_scales`` other than 1 move it).
 """
 
 from __future__ import annotations
@@ -93,6 +97,8 @@ class SweepResult:
         health: ``(C, R)`` OR of the health flags.
         fdi: :class:`~uimm_jax.engine.metrics.FDICounts` of ``(C, R)`` arrays (TDR, FAR,
             FIA), or ``None``.
+        nis: ``(C, R)`` each run's summed NIS per channel of the leading model (its mean
+            over the run: ``/ num_steps``; the innovation check), or ``None``.
         noise_keys: ``(R, 2)`` uint32 noise key of each run, or ``None``.
         true_magnitude: ``(C, R, F)`` truth magnitude of each fault (0: no event).
         end_step: ``(C, R, F)`` step at which each fault ends (-1: never).
@@ -121,6 +127,7 @@ class SweepResult:
     sq_err: np.ndarray
     health: np.ndarray
     fdi: metrics.FDICounts | None = None
+    nis: np.ndarray | None = None
     noise_keys: np.ndarray | None = None
     true_magnitude: np.ndarray | None = None
     end_step: np.ndarray | None = None
@@ -146,6 +153,7 @@ class SweepResult:
             "sq_err": self.sq_err,
             "health": self.health,
             **{f"fdi_{k}": v for k, v in self.fdi._asdict().items()},
+            **({} if self.nis is None else {"nis_sum": self.nis}),
         }
 
     def detected(self) -> np.ndarray:
@@ -342,6 +350,9 @@ def cell_summary(result: SweepResult, index: int) -> dict:
         "mode_accuracy": metrics.mode_accuracy(result.correct_samples[index], R * N),
         "mode_accuracy_min_run": metrics.mode_accuracy(result.correct_samples[index].min(), N),
         **fdi,
+        "mean_nis_per_channel": None
+        if result.nis is None
+        else float(result.nis[index].sum() / (R * N)),
         "state_rmse": {s: float(v) for s, v in zip(result.states, rmse, strict=True)},
         "health": {f"runs_{name}": health[name] for name in _RUN_HEALTH},
         **estimate_summary(result, index),
@@ -374,6 +385,7 @@ def _csv_rows(result: SweepResult) -> tuple[list[str], list[list]]:
         "tdr",
         "far",
         "fia",
+        "mean_nis_per_channel",
     ] + [f"rmse:{s}" for s in result.states]
     rows = []
     for s in result.summaries:
@@ -402,6 +414,7 @@ def _csv_rows(result: SweepResult) -> tuple[list[str], list[list]]:
             s["tdr"],
             s["far"],
             s["fia"],
+            s.get("mean_nis_per_channel"),
         ] + [s["state_rmse"][st] for st in result.states]
         rows.append(["" if v is None else v for v in row])
     return head, rows
