@@ -61,6 +61,7 @@ def paper_sim1(num_steps: int, source: str):
     root = Path(__file__).resolve().parents[1]
     d = scenario_to_dict(load_scenario(root / "scenarios" / "paper_sim1_tuned.toml"))
     d["filter"]["method"] = "uimm"  # the paper's UIMM (the tuned file runs uimm-est)
+    d["filter"].pop("est", None)  # uimm-est's settings: an error for another method
     dt = d["dt"]
     d["duration"] = num_steps * dt
     d["events"] = [
