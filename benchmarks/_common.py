@@ -53,6 +53,17 @@ def ram_bytes() -> float:
     return float("nan")
 
 
+def as_fixed_uimm(d: dict) -> dict:
+    """A scenario dict switched to the paper's fixed-size UIMM, in place (and returned).
+
+    The tuned files run ``uimm-est``; their ``[filter.est]`` is an error for another
+    method, so it is dropped.
+    """
+    d["filter"]["method"] = "uimm"
+    d["filter"].pop("est", None)
+    return d
+
+
 def paper_sim1(num_steps: int, source: str):
     """``paper_sim1_tuned`` shortened to ``num_steps`` samples, faults at 30 % and 60 %."""
     from uimm_jax.scenario.parse import load_scenario, parse_scenario
@@ -60,8 +71,7 @@ def paper_sim1(num_steps: int, source: str):
 
     root = Path(__file__).resolve().parents[1]
     d = scenario_to_dict(load_scenario(root / "scenarios" / "paper_sim1_tuned.toml"))
-    d["filter"]["method"] = "uimm"  # the paper's UIMM (the tuned file runs uimm-est)
-    d["filter"].pop("est", None)  # uimm-est's settings: an error for another method
+    as_fixed_uimm(d)
     dt = d["dt"]
     d["duration"] = num_steps * dt
     d["events"] = [

@@ -101,7 +101,10 @@ def _child(args) -> dict:
     }
     base = uimm_jax.load_scenario(args.scenario)
     data = scenario_to_dict(base)
-    data["filter"]["method"] = "uimm"  # the paper's UIMM (the tuned files run uimm-est)
+    sys.path.insert(0, str(HERE))
+    from _common import as_fixed_uimm
+
+    as_fixed_uimm(data)  # the paper's UIMM (the tuned files run uimm-est)
     data["duration"] = round(args.steps * base.dt, 12)
     data["events"] = [e for e in data["events"] if e["time"] < data["duration"]]
     scenario = parse_scenario(data)
