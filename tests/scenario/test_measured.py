@@ -317,3 +317,8 @@ def test_cli_measurements_end_to_end(tmp_path, sc, sim, monkeypatch, capsys):
         assert summary[key] == api[key], key
     assert summary["health"]["missing_steps"] == int(np.isnan(y).any(axis=1).sum())
     assert [d["fault"] for d in summary["declarations"]] == ["valve_wear", "leakage"]
+    # Recorded data with missing channels: the innovation check counts every step that
+    # observed a channel, per observed channel, and finds the noise the data's.
+    ic = summary["innovation_check"]
+    assert ic == api["innovation_check"] and ic["samples"] == len(y)
+    assert ic["verdict"] == "consistent" and 0.8 < ic["mean_nis_per_channel"] < 1.25
