@@ -164,10 +164,10 @@ def run_rows(result) -> tuple[list[str], list[list]]:
     ``mode_accuracy``, ``tdr``, ``far``, ``fia`` and ``nis`` (the mean over the run of the
     most probable model's NIS per channel, 1 when the filter's noise fits) of the run.  A
     sweep with a size-estimating method (``uimm-est``) adds per fault, after
-    ``<fault>:declaration``,
-    ``<fault>:retracted_s`` (the time of its last retraction, ``(step + 1) * dt``; empty:
-    never retracted), ``<fault>:magnitude`` and ``<fault>:magnitude_sd`` (the estimate and
-    its standard deviation at the last sample; empty in another method's cells).
+    ``<fault>:declaration``, ``<fault>:retracted_s`` (the time of its last retraction,
+    ``(step + 1) * dt``; empty: never retracted), ``<fault>:magnitude`` and
+    ``<fault>:magnitude_sd`` (the estimate and its standard deviation at the last sample;
+    empty in another method's cells).
 
     Args:
         result: a :class:`~uimm_jax.studies.sweep_outputs.SweepResult`.
