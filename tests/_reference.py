@@ -189,11 +189,12 @@ def kalman_filter(A, B, C, Q, R, x0, P0, inputs, measurements):
 
     Returns:
         dict with ``mean (N,n)``, ``cov (N,n,n)``, ``loglik (N,)``, ``nis (N,)`` (the
-        innovation's ``e' S^-1 e``) and ``marginal_loglik`` (the sum of ``loglik``).
+        innovation's ``e' S^-1 e``), ``nis_channels (N,m)`` (each channel's
+        ``e_i^2 / S_ii``) and ``marginal_loglik`` (the sum of ``loglik``).
     """
     x = np.asarray(x0, dtype=np.float64)
     P = np.asarray(P0, dtype=np.float64)
-    means, covs, lls, nis = [], [], [], []
+    means, covs, lls, nis, nis_ch = [], [], [], [], []
     for u, y in zip(np.asarray(inputs), np.asarray(measurements), strict=True):
         x = A @ x + B @ u
         P = A @ P @ A.T + Q
@@ -207,6 +208,7 @@ def kalman_filter(A, B, C, Q, R, x0, P0, inputs, measurements):
         _, logdet = np.linalg.slogdet(2.0 * np.pi * S)
         lls.append(-0.5 * (logdet + e @ S_inv @ e))
         nis.append(e @ S_inv @ e)
+        nis_ch.append(e**2 / np.diag(S))
         means.append(x)
         covs.append(P)
     lls = np.asarray(lls)
@@ -215,6 +217,7 @@ def kalman_filter(A, B, C, Q, R, x0, P0, inputs, measurements):
         "cov": np.asarray(covs),
         "loglik": lls,
         "nis": np.asarray(nis),
+        "nis_channels": np.asarray(nis_ch),
         "marginal_loglik": float(lls.sum()),
     }
 

@@ -47,7 +47,7 @@ def _reference_one(x, P, y, y_pred, H, R, gate):
         loglik = jnp.where(keep, loglik, 0.0)
     A = jnp.eye(P.shape[0]) - K @ Hv
     Rv = jnp.where(vv, R, 0.0)
-    return x + K @ e, A @ P @ A.T + K @ Rv @ K.T, loglik, nis
+    return x + K @ e, A @ P @ A.T + K @ Rv @ K.T, loglik, nis, e**2 / jnp.diagonal(S)
 
 
 def _batch_first(a, nb):
@@ -83,7 +83,8 @@ def _problem(seed, n=3, m=3, batch=(4, 2)):
     y[1, 0, 1] = np.nan  # one missing channel in one run
     y_pred = rng.normal(size=(m,) + batch)
     R = _spd(rng, m, ())[..., None, None]
-    weights = [rng.normal(size=s) for s in [(n,) + batch, (n, n) + batch, batch, batch]]
+    shapes = [(n,) + batch, (n, n) + batch, batch, batch, (m,) + batch]
+    weights = [rng.normal(size=s) for s in shapes]
     return rng, x, P, y, y_pred, R, weights
 
 
@@ -109,7 +110,7 @@ def test_update_gradient_equals_the_textbook_update(seed, h_kind, gate):
 
     def engine(x, P, y, y_pred, H, R):
         r = kalman.kf_update(x, P, y, y_pred, H, R, FLOOR, accept)
-        return total((r.mean, r.cov, r.loglik, r.nis))
+        return total((r.mean, r.cov, r.loglik, r.nis, r.nis_channels))
 
     def textbook(x, P, y, y_pred, H, R):
         return total(_reference(x, P, y, y_pred, H, R, gate))

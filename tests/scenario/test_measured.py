@@ -322,3 +322,7 @@ def test_cli_measurements_end_to_end(tmp_path, sc, sim, monkeypatch, capsys):
     ic = summary["innovation_check"]
     assert ic == api["innovation_check"] and ic["samples"] == len(y)
     assert ic["verdict"] == "consistent" and 0.8 < ic["mean_nis_per_channel"] < 1.25
+    # Per output: the one with gaps counts only its observed samples.
+    seen = {name: int(np.isfinite(y[:, i]).sum()) for i, name in enumerate(header[1:4])}
+    assert {k: v["samples"] for k, v in ic["by_channel"].items()} == seen
+    assert all(v["verdict"] == "consistent" for v in ic["by_channel"].values())

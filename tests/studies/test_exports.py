@@ -252,6 +252,27 @@ def test_run_exports_the_leading_models_nis_and_summarises_it(run_out):
         assert float(r["nis"]) == pytest.approx(nis[int(r["step"])], rel=1e-9)
 
 
+def test_run_exports_each_outputs_nis_and_summarises_it_by_output(run_out):
+    """``nis_channels`` in timeseries.npz (``nis:<output>`` in the csv) is the same model's
+    ``e_i^2 / S_ii`` per measured output (``chi^2_1``: median 0.455, mean 1), and
+    summary.json's ``innovation_check.by_channel`` holds each output's mean and verdict."""
+    summary = json.loads((run_out / "summary.json").read_text())
+    with np.load(run_out / "timeseries.npz") as z:
+        ch, outputs = z["nis_channels"], [str(o) for o in z["outputs"]]
+    N = summary["num_steps"]
+    assert ch.shape == (N, len(outputs)) and np.all(ch >= 0)
+    by = summary["innovation_check"]["by_channel"]
+    assert list(by) == outputs
+    for i, name in enumerate(outputs):
+        assert by[name]["mean_nis"] == pytest.approx(float(np.mean(ch[:, i])), rel=1e-12)
+        assert by[name]["verdict"] == "consistent" and by[name]["samples"] == N
+        assert 0.35 < np.median(ch[:, i]) < 0.55  # chi^2_1: 0.455
+    rows = list(csv.DictReader((run_out / "timeseries.csv").open()))
+    for r in rows[::41]:
+        got = [float(r[f"nis:{o}"]) for o in outputs]
+        np.testing.assert_allclose(got, ch[int(r["step"])], rtol=1e-9)
+
+
 @pytest.mark.parametrize(("scale", "verdict"), [(2.0, "noise too small"), (0.5, "noise too large")])
 def test_innovation_check_flags_measurement_noise_the_filter_misjudges(scale, verdict):
     """The truth's measurement noise sd x2 (x0.5), the filter's as given: the NIS scales by
@@ -272,6 +293,27 @@ def test_innovation_check_flags_measurement_noise_the_filter_misjudges(scale, ve
     assert ic["mean_nis_per_channel"] == pytest.approx((2 * scale**2 + 1) / 3, rel=0.1)
 
 
+@pytest.mark.parametrize("channel", [0, 1, 2])
+def test_innovation_check_by_output_names_the_one_whose_noise_is_off(channel):
+    """The truth's measurement noise sd x2 on one output only: that output's own mean
+    ``e_i^2 / S_ii`` leaves the band and the others stay consistent (measured on 5 s of
+    sim 1: 2.7, 2.7 and 3.6 on the output scaled, 0.99-1.04 elsewhere)."""
+    from _robustness_helpers import short_dict
+    from uimm_jax.scenario.parse import parse_scenario
+    from uimm_jax.studies.run import execute_run, filter_measurements, setup_scenario
+
+    d = short_dict(1, duration=0.3, events=(0.1, 0.2))
+    sc = parse_scenario(d)
+    d["noise"]["measurement"][channel] *= 4.0
+    truth = setup_scenario(parse_scenario(d))
+    r = execute_run(setup_scenario(sc), filter_measurements, truth_setup=truth, seed=0)
+    by = r.summary["innovation_check"]["by_channel"]
+    names = list(sc.plant.output_names)
+    assert list(by) == names
+    off = [k for k, v in by.items() if v["verdict"] != "consistent"]
+    assert off == [names[channel]] and by[names[channel]]["verdict"] == "noise too small"
+
+
 def test_innovation_check_of_chi_square_samples_and_of_nothing_observed():
     rng = np.random.default_rng(0)
     m = 3
@@ -282,3 +324,19 @@ def test_innovation_check_of_chi_square_samples_and_of_nothing_observed():
     assert big["verdict"] == "noise too small"
     none = metrics.innovation_check(np.full(5, np.nan))
     assert none["verdict"] is None and none["samples"] == 0
+    # By channel: chi^2_1 samples, the second channel's x4 and with gaps (NaN: missing).
+    ch = rng.chisquare(1, (4000, 3))
+    ch[:, 1] *= 4.0
+    ch[::4, 2] = np.nan
+    by = metrics.innovation_check(np.nanmean(ch, axis=1), ch, ["a", "b", "c"])["by_channel"]
+    assert [by[k]["verdict"] for k in "abc"] == ["consistent", "noise too small", "consistent"]
+    assert by["c"]["samples"] == 3000 and by["c"]["mean_nis"] == pytest.approx(
+        float(np.nanmean(ch[:, 2])), rel=1e-12
+    )
+    unnamed = metrics.innovation_check(np.full(2, np.nan), np.full((2, 2), np.nan))
+    assert unnamed["by_channel"]["1"] == {
+        "mean_nis": None,
+        "band_99": None,
+        "samples": 0,
+        "verdict": None,
+    }

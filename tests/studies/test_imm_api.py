@@ -461,3 +461,33 @@ def test_nis_is_the_kalman_filters_innovation_quadratic_form_and_off_by_default(
     np.testing.assert_allclose(out.nis[:, 0], kf["nis"], rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(out.model_loglik[:, 0], kf["loglik"], rtol=1e-10, atol=1e-12)
     assert uimm_jax.imm_filter(*args, *data).nis is None
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_nis_channels_are_each_channels_squared_innovation_over_its_variance(seed):
+    """``outputs=("nis_channels",)``: each model's ``e_i^2 / S_ii`` per channel equals the
+    textbook Kalman filter's; a missing channel gives 0 there while the others keep their
+    own terms, and the default call leaves the field out."""
+    problem = make_linear_problem(seed, M=1, n=3, m=2, p=1, N=150)
+    keys = ("A", "B", "C", "Q", "R", "x0", "P0")
+    kf = kalman_filter(
+        *(problem[key][0] for key in keys), problem["inputs"], problem["measurements"]
+    )
+    bank = uimm_jax.LinearGaussianBank(
+        problem["A"], problem["B"], problem["C"], problem["Q"], problem["R"]
+    )
+    args = (bank, problem["transition"], problem["mu0"], problem["x0"], problem["P0"])
+    data = (problem["inputs"], problem["measurements"])
+    out = uimm_jax.imm_filter(*args, *data, outputs=("nis_channels", "nis"))
+    assert out.nis_channels.shape == (150, 1, 2)
+    np.testing.assert_allclose(out.nis_channels[:, 0], kf["nis_channels"], rtol=1e-9, atol=1e-12)
+    # With uncorrelated channels (S diagonal) the channels' terms add up to e' S^-1 e;
+    # in general they do not, which is why both are kept.
+    assert not np.allclose(np.sum(out.nis_channels[:, 0], axis=1), out.nis[:, 0])
+    y = np.array(problem["measurements"], copy=True)
+    y[10:20, 1] = np.nan
+    gap = uimm_jax.imm_filter(*args, problem["inputs"], y, outputs=("nis_channels",))
+    assert np.all(gap.nis_channels[10:20, 0, 1] == 0.0)
+    assert np.all(gap.nis_channels[10:20, 0, 0] > 0.0)
+    np.testing.assert_array_equal(gap.nis_channels[:10], out.nis_channels[:10])
+    assert uimm_jax.imm_filter(*args, *data).nis_channels is None

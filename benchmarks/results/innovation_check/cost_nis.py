@@ -1,6 +1,7 @@
-"""What the per-step ``nis`` output costs the run command: ``filter_chunk`` on the tuned
-sim 1 (uimm-est and uimm) with the default outputs against the same without ``nis``,
-interleaved in one process, process CPU time, median of REPEATS (session 16).
+"""What the per-step ``nis`` outputs cost the run command: ``filter_chunk`` on the tuned
+sim 1 (uimm-est and uimm) with the default outputs against the same without
+``nis_channels`` (session 17) and without both ``nis`` outputs (session 16: without
+``nis``), interleaved in one process, process CPU time, median of REPEATS.
 
 Usage (repository root): ``python benchmarks/results/innovation_check/cost_nis.py [REPEATS]``.
 """
@@ -32,7 +33,8 @@ def main():
         us = jnp.asarray(scenario_inputs(sc, N))
         extra = ESTIMATE_OUTPUTS if method == "uimm-est" else ()
         keys = {"default": FILTER_OUTPUTS + extra}
-        keys["without nis"] = tuple(k for k in keys["default"] if k != "nis")
+        keys["without nis_channels"] = tuple(k for k in keys["default"] if k != "nis_channels")
+        keys["without nis"] = tuple(k for k in keys["default"] if k not in ("nis", "nis_channels"))
         times = {k: [] for k in keys}
         for _ in range(repeats):
             for name, ks in keys.items():
@@ -43,9 +45,11 @@ def main():
                 jax.block_until_ready(f())
                 times[name].append((time.process_time() - t0) / N * 1e6)
         med = {k: float(np.median(v)) for k, v in times.items()}
+        base = med["without nis"]
         print(
-            f"{method}: default {med['default']:.3f} us/step, without nis "
-            f"{med['without nis']:.3f}; ratio {med['default'] / med['without nis']:.3f}"
+            f"{method}: default {med['default']:.3f} us/step, without nis_channels "
+            f"{med['without nis_channels']:.3f}, without both {base:.3f}; ratios "
+            f"{med['default'] / base:.3f}, {med['without nis_channels'] / base:.3f}"
         )
 
 

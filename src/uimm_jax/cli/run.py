@@ -168,6 +168,11 @@ def _print_summary(s: dict) -> None:
             f"innovation check    mean NIS per channel {ic['mean_nis_per_channel']:.3g} "
             f"(1 expected): {ic['verdict']}{hint}"
         )
+        by = {k: v for k, v in (ic.get("by_channel") or {}).items() if v["verdict"]}
+        if by:  # each measured output's own e^2 / S: which channel's noise is off
+            each = ", ".join(f"{k} {v['mean_nis']:.3g}" for k, v in by.items())
+            odd = [k for k, v in by.items() if v["verdict"] != "consistent"]
+            print(f"  by output         {each}" + (f"  (off: {', '.join(odd)})" if odd else ""))
     comp = s.get("compile_s")
     # One chunk (a short run) gives no steady-state rate: its time includes compilation.
     how = f"steady state, compile {comp:.1f} s" if comp is not None else "compilation included"

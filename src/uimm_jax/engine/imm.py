@@ -95,6 +95,10 @@ class StepInfo(NamedTuple):
             the observed channels (the quadratic term of eq. 27; 0 when none is observed):
             ``chi^2`` with as many degrees of freedom as observed channels when the
             model and its noise covariances are the data's.
+        nis_channels: ``(m, M, *runs)`` each model's normalised innovation squared per
+            channel, ``e_i^2 / S_ii`` (0 on a missing channel): ``chi^2_1`` on each
+            channel under the same conditions, so that a channel whose noise is set
+            wrong stands out.
     """
 
     log_mode_probs: jax.Array
@@ -104,6 +108,7 @@ class StepInfo(NamedTuple):
     cov: jax.Array
     health: jax.Array
     nis: jax.Array
+    nis_channels: jax.Array
 
 
 def log_normalize(log_w: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -396,5 +401,6 @@ def imm_step(
         cov=Pc if with_cov else jnp.zeros((0,), dtype),
         health=health.astype(jnp.int32),
         nis=res.nis,
+        nis_channels=res.nis_channels,
     )
     return IMMState(x_new, P_new, log_mu), info

@@ -365,7 +365,18 @@ dominates the innovation, a mean of 1.25 is a noise standard deviation about 12 
 small (docs/montecarlo.md, "Innovation check")."""
 
 
-def innovation_check(nis) -> dict:
+def _nis_mean(seen: np.ndarray) -> dict:
+    """Mean, 99 % sampling band, count and verdict of observed per-channel NIS values."""
+    mean = float(np.mean(seen))
+    half = 2.5758293035489004 * np.sqrt(2.0 / seen.size)
+    lo, hi = NIS_BAND
+    verdict = "consistent"
+    if not lo <= mean <= hi:
+        verdict = "noise too small" if mean > hi else "noise too large"
+    return {"band_99": [1.0 - half, 1.0 + half], "samples": int(seen.size), "verdict": verdict}
+
+
+def innovation_check(nis, nis_channels=None, channel_names=None) -> dict:
     """Whether the filter's noise covariances fit the data: ``summary.json``'s check.
 
     ``nis`` ``(N,)`` is the most probable model's normalised innovation squared per
@@ -377,24 +388,30 @@ def innovation_check(nis) -> dict:
     count of steps, and ``verdict``: ``"consistent"`` inside :data:`NIS_BAND`, else
     ``"noise too small"`` (the data vary more than ``Q`` and ``R`` allow) or ``"noise too
     large"``; ``None`` without an observed step.
+
+    With ``nis_channels`` ``(N, m)`` (the same model's ``e_i^2 / S_ii`` on each channel,
+    :func:`uimm_jax.engine.scan.leading_nis_channels`; NaN where missing) it adds
+    ``by_channel``: per channel (named by ``channel_names``, else ``"0"``, ``"1"``, ...)
+    the same figures of that channel alone (mean 1 under consistency: each term is
+    ``chi^2_1``).  A channel whose noise is set wrong stands out there.
     """
     nis = np.asarray(nis, np.float64)
     seen = nis[np.isfinite(nis)]
     out = {"mean_nis_per_channel": None, "expected": 1.0, "band_99": None, "samples": 0}
     if not seen.size:
-        return out | {"verdict": None}
-    mean = float(np.mean(seen))
-    half = 2.5758293035489004 * np.sqrt(2.0 / seen.size)
-    lo, hi = NIS_BAND
-    verdict = "consistent"
-    if not lo <= mean <= hi:
-        verdict = "noise too small" if mean > hi else "noise too large"
-    return out | {
-        "mean_nis_per_channel": mean,
-        "band_99": [1.0 - half, 1.0 + half],
-        "samples": int(seen.size),
-        "verdict": verdict,
-    }
+        out |= {"verdict": None}
+    else:
+        out |= {"mean_nis_per_channel": float(np.mean(seen))} | _nis_mean(seen)
+    if nis_channels is None:
+        return out
+    ch = np.asarray(nis_channels, np.float64).reshape(nis.shape[0], -1)
+    names = [str(i) for i in range(ch.shape[1])] if channel_names is None else channel_names
+    by = {}
+    for i, name in enumerate(names):
+        col = ch[:, i][np.isfinite(ch[:, i])]
+        empty = {"mean_nis": None, "band_99": None, "samples": 0, "verdict": None}
+        by[name] = {"mean_nis": float(np.mean(col))} | _nis_mean(col) if col.size else empty
+    return out | {"by_channel": by}
 
 
 def health_counts(health) -> dict[str, int]:

@@ -48,17 +48,27 @@ __all__ = [
     "drop_batch_of_one",
     "filter_chunk",
     "leading_nis",
+    "leading_nis_channels",
     "scan_chunked",
     "simulate_diagnose",
     "truth_sample",
     "truth_scan",
 ]
 
-FILTER_OUTPUTS = ("mode_probs", "mean", "recognised", "declared", "health", "nis")
+FILTER_OUTPUTS = (
+    "mode_probs",
+    "mean",
+    "recognised",
+    "declared",
+    "health",
+    "nis",
+    "nis_channels",
+)
 """Per-step outputs :func:`filter_chunk` keeps by default (``"cov"`` may be added).
 
 ``nis`` is the most probable model's normalised innovation squared per observed channel
-(:func:`leading_nis`)."""
+(:func:`leading_nis`), ``nis_channels`` the same model's on each channel
+(:func:`leading_nis_channels`)."""
 
 ESTIMATE_OUTPUTS = ("magnitude", "magnitude_sd")
 """Per-step outputs of a size-estimating diagnoser (``(F,)`` estimate and its sd)."""
@@ -296,6 +306,7 @@ def filter_chunk(diag, params, state, k0, uy, outputs: tuple[str, ...] = FILTER_
             "magnitude": lambda: info.magnitude,
             "magnitude_sd": lambda: info.magnitude_sd,
             "nis": lambda: leading_nis(info.step, y),
+            "nis_channels": lambda: leading_nis_channels(info.step, y),
         }
         return st, tuple(avail[name]() for name in outputs)
 
@@ -319,6 +330,22 @@ def leading_nis(info, y: jax.Array) -> jax.Array:
     nis = jnp.sum(jnp.where(models == lead, info.nis, 0.0), axis=0)
     m = jnp.sum(jnp.isfinite(y), axis=0)
     return jnp.where(m > 0, nis / jnp.maximum(m, 1).astype(nis.dtype), jnp.nan)
+
+
+def leading_nis_channels(info, y: jax.Array) -> jax.Array:
+    """The most probable model's ``e_i^2 / S_ii`` on each channel, ``(m, *runs)``.
+
+    Each channel's own normalised innovation squared (``StepInfo.nis_channels``): of mean 1
+    on every channel when the leading model and the filter's noise covariances are the
+    data's, whatever the correlation between channels; NaN on a missing channel.  Where
+    :func:`leading_nis` flags a mismatch, the channel whose mean is far from 1 is the one
+    whose noise (or model) is off.
+    """
+    lead = jnp.argmax(info.log_mode_probs, axis=0)
+    M = info.nis_channels.shape[1]
+    models = jnp.arange(M).reshape((1, -1) + (1,) * lead.ndim)
+    ch = jnp.sum(jnp.where(models == lead, info.nis_channels, 0.0), axis=1)
+    return jnp.where(jnp.isfinite(y), ch, jnp.nan)
 
 
 def as_batch_of_one(tree):

@@ -32,7 +32,7 @@ __all__ = [
 TIMESERIES_KEYS = ("time", "mode_probs", "recognised", "declared", "mean", "health")
 """Arrays of every ``timeseries.npz`` (see :func:`timeseries_arrays`)."""
 
-TIMESERIES_OPTIONAL_KEYS = ("magnitude", "magnitude_sd", "nis")
+TIMESERIES_OPTIONAL_KEYS = ("magnitude", "magnitude_sd", "nis", "nis_channels")
 """Per-step outputs that some runs record, exported under the same name when a run's
 ``outputs`` holds them: a size-estimating diagnoser's (``uimm-est``) fault-size estimate
 ``magnitude`` ``(N, F)`` and its standard deviation ``magnitude_sd`` ``(N, F)``, per fault
@@ -40,7 +40,9 @@ TIMESERIES_OPTIONAL_KEYS = ("magnitude", "magnitude_sd", "nis")
 interval is ``magnitude +- 1.96 magnitude_sd``, as in ``summary.json``); and ``nis``
 ``(N,)``, the most probable model's normalised innovation squared per observed channel
 (mean 1 when the filter's noise is the data's; NaN where nothing was observed;
-:func:`uimm_jax.engine.scan.leading_nis`)."""
+:func:`uimm_jax.engine.scan.leading_nis`), and ``nis_channels`` ``(N, m)``, the same
+model's ``e_i^2 / S_ii`` on each measured output (``outputs`` order; NaN where missing;
+:func:`uimm_jax.engine.scan.leading_nis_channels`)."""
 
 
 def timeseries_arrays(result) -> dict[str, np.ndarray]:
@@ -55,10 +57,12 @@ def timeseries_arrays(result) -> dict[str, np.ndarray]:
         codes (bit j = fault j of ``faults``); ``mean`` (N, n) combined state estimate
         (eq. 30); ``health`` (N,) health bits (``health_flags``); ``truth`` (N,) the true
         fault-set code (the scenario's events for measured data); the names
-        ``model_labels``, ``faults``, ``states`` and ``health_flags`` (bit values) as
-        arrays; and each key of :data:`TIMESERIES_OPTIONAL_KEYS` the run recorded
-        (``uimm-est``: ``magnitude`` and ``magnitude_sd``, ``(N, F)``; every run of
-        :func:`~uimm_jax.studies.run.filter_measurements`: ``nis`` ``(N,)``).
+        ``model_labels``, ``faults``, ``states``, ``outputs`` (the measured outputs) and
+        ``health_flags`` (bit values) as arrays; and each key of
+        :data:`TIMESERIES_OPTIONAL_KEYS` the run recorded (``uimm-est``: ``magnitude`` and
+        ``magnitude_sd``, ``(N, F)``; every run of
+        :func:`~uimm_jax.studies.run.filter_measurements`: ``nis`` ``(N,)`` and
+        ``nis_channels`` ``(N, m)``).
     """
     o = result.outputs
     setup = result.setup
@@ -73,6 +77,7 @@ def timeseries_arrays(result) -> dict[str, np.ndarray]:
         "model_labels": np.array(setup.diagnoser.model_labels()),
         "faults": np.array(list(setup.table.names)),
         "states": np.array(list(setup.scenario.plant.state_names)),
+        "outputs": np.array(list(setup.scenario.plant.output_names)),
         "health_flags": np.array([f"{name}={bit}" for name, bit in metrics.HEALTH_FLAGS.items()]),
     }
     for key in TIMESERIES_OPTIONAL_KEYS:
@@ -132,6 +137,8 @@ def write_timeseries_csv(result, path: str | Path, *, every: int | None = None) 
         width = a[k].reshape(N, -1).shape[1]
         if a[k].ndim == 1:  # one value a step
             head += [k]
+        elif k == "nis_channels":  # one value a measured output
+            head += [f"nis:{o}" for o in a["outputs"]]
         elif width == len(faults):
             head += [f"{k}:{f}" for f in faults]
         else:

@@ -75,6 +75,11 @@ class IMMResult(NamedTuple):
             observed channels (0 where none is observed): ``chi^2`` with as many degrees
             of freedom as observed channels when the model and its noise are the data's.
             Only when named in ``outputs`` (not in the default set).
+        nis_channels: ``(N, M, m)`` each model's normalised innovation squared on each
+            channel, ``e_i^2 / S_ii`` (0 where the channel is missing): ``chi^2_1`` on
+            every channel under the same conditions, whatever the correlation between
+            channels, so that a channel whose noise is set wrong stands out.  Only when
+            named in ``outputs``.
 
     A field left out by :func:`imm_filter`'s ``outputs`` (or its ``return_cov`` and
     ``return_model_means`` flags) is ``None``.
@@ -90,6 +95,7 @@ class IMMResult(NamedTuple):
     health: jax.Array
     model_mean: jax.Array | None = None
     nis: jax.Array | None = None
+    nis_channels: jax.Array | None = None
 
 
 def _warn_if_float32(dtype) -> None:
@@ -130,6 +136,7 @@ _SCAN_FIELD = {
     "health": "health",
     "model_mean": "model_mean",
     "nis": "nis",
+    "nis_channels": "nis_channels",
 }
 
 
@@ -171,6 +178,8 @@ def _imm_scan(dyn, cache, params, state0, inputs, measurements, gate, keep):
         res["marginal_loglik"] = jnp.sum(out["loglik_increment"])
     if "model_mean" in keep:
         res["model_mean"] = jnp.moveaxis(out["model_mean"], -1, 1)
+    if "nis_channels" in keep:
+        res["nis_channels"] = jnp.swapaxes(out["nis_channels"], 1, 2)
     return res
 
 
@@ -178,7 +187,7 @@ def _check_outputs(outputs, return_model_means: bool, return_cov: bool) -> tuple
     """The IMMResult fields to compute: ``outputs`` checked, or the flags' default set."""
     if outputs is None:
         drop = ("cov",) * (not return_cov) + ("model_mean",) * (not return_model_means)
-        drop += ("nis",)  # on request only: the default call's bytes stay as measured
+        drop += ("nis", "nis_channels")  # on request only: the default call's bytes as measured
         return tuple(k for k in IMMResult._fields if k not in drop)
     if return_model_means or not return_cov:
         raise ValueError(

@@ -106,12 +106,8 @@ class RunSetup:
 @functools.lru_cache(maxsize=64)
 def _cached_diagnoser(plant, dt, method, gate, faults_key, nominal_key, est=None):
     nominal = np.asarray(nominal_key)
-    table = fault_table(
-        plant.param_names,
-        nominal,
-        {k: dict(v) for k, v in faults_key},
-        log_params=plant.positive_params,
-    )
+    faults = {k: dict(v) for k, v in faults_key}
+    table = fault_table(plant.param_names, nominal, faults, log_params=plant.positive_params)
     refs = [nominal] + [
         table.theta_numpy(np.eye(table.num_faults, dtype=bool)[j]) for j in range(table.num_faults)
     ]
@@ -284,10 +280,10 @@ def filter_measurements(
     Returns:
         ``(final_state, outputs)`` with outputs a dict of per-step NumPy arrays:
         ``mode_probs`` (N, M), ``mean`` (N, n), ``recognised`` (N,), ``declared`` (N,),
-        ``health`` (N,), ``nis`` (N,) (the leading model's NIS per observed channel,
-        :func:`~uimm_jax.engine.scan.leading_nis`) and, with ``with_cov``, ``cov``
-        (N, n, n).  ``timings``, if given, receives ``(steps, seconds)`` per chunk (the
-        first includes compilation).
+        ``health`` (N,), ``nis`` (N,) and ``nis_channels`` (N, m) (the innovation check:
+        :data:`~uimm_jax.engine.scan.FILTER_OUTPUTS`) and, with ``with_cov``, ``cov`` (N, n,
+        n).  ``timings``, if given, receives ``(steps, seconds)`` per chunk (the first
+        includes compilation).
     """
     sc = setup.scenario
     y, u = check_run_data(setup, y, u, chunk)
@@ -529,7 +525,7 @@ def summarize(
     ``EstSettings`` field of a ``uimm-est`` run (``[filter.est]``), ``None`` for the others.
     ``innovation_check`` (:func:`~uimm_jax.engine.metrics.innovation_check`): the mean of
     the leading model's NIS per channel against its expected 1, and whether the filter's
-    noise fits the data (``None`` without the per-step ``nis`` output).
+    noise fits the data, also per measured output (``None`` without the ``nis`` output).
     """
     sc, diag = setup.scenario, setup.diagnoser
     names = list(setup.table.names)
@@ -559,6 +555,8 @@ def summarize(
     correct = np.sum(np.asarray(outputs["recognised"]) == truth_codes)
     health = metrics.health_counts(outputs["health"])
     fdi = metrics.fdi_rates(run_fdi_counts(setup, truth_codes, outputs), N)
+    nis = [outputs[k] if k in outputs else None for k in ("nis", "nis_channels")]
+    ic = None if nis[0] is None else metrics.innovation_check(*nis, sc.plant.output_names)
     return {
         "scenario": sc.name,
         "source": sc.source,
@@ -586,7 +584,7 @@ def summarize(
         "false_declaration_list": false,
         "mode_accuracy": metrics.mode_accuracy(correct, N),
         **fdi,
-        "innovation_check": metrics.innovation_check(outputs["nis"]) if "nis" in outputs else None,
+        "innovation_check": ic,
         "transition": setup.transition.tolist(),
         "initial_mode_probs": setup.initial_mode_probs.tolist(),
         "threshold": float(sc.filter.decision.threshold),
