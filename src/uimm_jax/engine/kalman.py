@@ -205,13 +205,15 @@ def _update_forward(x, P, y, y_pred, H, R, floor, accept, accept_args):
     # masking (and a constant H = I stays free).
     PHt = bk.mmt(P, H)  # (n, m, *batch)
     S = bk.mm(H, PHt) + R
+    # The per-channel NIS's variances, read before the masking below (on a missing channel
+    # e = 0, so the term is 0 either way): after it, uimm-est's step measured 1.04-1.07x.
+    S_diag = jnp.maximum(bk.diagonal(S), floor)
     eye = np.eye(m).reshape((m, m) + (1,) * (S.ndim - 2))
     S = jnp.where(valid[:, None] & valid[None, :], S, eye.astype(S.dtype))
     PHt = jnp.where(valid[None, :], PHt, 0.0)
     Linv, logdet, repaired = bk.inv_cholesky(S, floor)
     v = bk.mv(Linv, e)  # L^-1 e: K e = W v and K S K' = W W'
     nis = jnp.sum(v * v, axis=0)
-    S_diag = jnp.maximum(bk.diagonal(S), floor)  # 1 on a missing channel, where e = 0
     nis_channels = e * e / S_diag
     num_obs = jnp.sum(valid, axis=0, dtype=jnp.int32)
     loglik = -0.5 * (nis + logdet) - (0.5 * LOG_2PI) * num_obs.astype(nis.dtype)
