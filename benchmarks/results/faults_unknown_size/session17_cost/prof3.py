@@ -1,0 +1,99 @@
+# ruff: noqa  (scratch harness of session 17, kept as run; see README.md)
+"""Scratch: bisect reset_unused's cost."""
+import sys
+src = open("benchmarks/results/faults_unknown_size/session17_cost/prof.py").read().split("res = {k: [] for k in variants}")[0]
+exec(src)
+import time
+from uimm_jax.engine._est_rules import *
+from uimm_jax.engine._est_rules import NEAR_FLOOR_MU
+s = d.per_sample
+
+import os
+if os.environ.get("SLICEVAR"):
+    def mag_var(cov, n):
+        return jnp.stack([cov[k, k] for k in range(n, cov.shape[0])])
+def reset_v(s, n, st, use, declared, since, keep=None, skip=()):
+    F = declared.shape[0]
+    var_all = mag_var(st.cov, n)
+    own = own_slots(F, use.ndim - 2)
+    own_mean = jnp.sum(jnp.where(own, st.mean[n:], 0.0), axis=1)
+    own_var = jnp.sum(jnp.where(own, var_all, 0.0), axis=1)
+    any_decl = jnp.any(declared, axis=0)
+    due = since >= s.restart_gap
+    lead = jnp.argmax(st.log_mode_probs, axis=0)
+    hyp = np.arange(1, F + 1).reshape((F,) + (1,) * (use.ndim - 2))
+    lead_f = (lead == hyp) & ~declared
+    if s.race_below > 0 and "race" not in skip:
+        small = jnp.any(lead_f & (own_mean < s.race_below), axis=0)
+        due = due & ~small
+    low = (st.log_mode_probs[1:] < np.log(s.restart_below)) & due
+    floor_gap = s.floor_gap
+    if s.post_floor_gap > 0:
+        floor_gap = jnp.where(any_decl, s.post_floor_gap, s.floor_gap)
+    at_floor = floor_mean(s, declared, since)
+    if s.floor_z > 0 and "fz" not in skip:
+        resting = any_decl & (st.log_mode_probs[1:] < np.log(NEAR_FLOOR_MU))
+        if growth_ages(s):
+            resting = resting & jnp.all(~declared | (since >= s.settle_steps), axis=0)
+        near = s.floor_z * jnp.sqrt(jnp.maximum(own_var, 0.0))
+        at_floor = at_floor + jnp.where(resting, near, 0.0)
+    held = (own_mean <= at_floor) & (since >= floor_gap)
+    if s.race_floor > 0 and "race" not in skip:
+        race = jnp.any(lead_f & (own_mean < s.race_floor), axis=0)
+        held = held & ~(race & ~any_decl if s.race_floor_first else race)
+    if keep is not None:
+        held = held & ~keep
+    live = ~low & ~held
+    restart = ~declared & ~live
+    since = jnp.where(restart, 1, jnp.minimum(since + 1, gap_cap(s)))
+    if "useupd" not in skip:
+        use = use & ~(own & restart[:, None])
+    tm = jnp.where(declared, st.mean[n:, 0], jnp.where(live, own_mean, s.prior_mean))
+    tv = jnp.where(declared, var_all[:, 0], jnp.where(live, own_var, s.prior_sd**2))
+    tm, tv = tm[:, None], tv[:, None]
+    if "bar2" in skip:
+        use, tm, tv = jax.lax.optimization_barrier((use, tm, tv))
+    free = jnp.concatenate([jnp.ones((n,) + use.shape[1:], bool), use], axis=0)
+    mean = jnp.concatenate([st.mean[:n], jnp.where(use, st.mean[n:], tm)], 0)
+    if "cov" in skip:
+        cov = st.cov
+    else:
+        keep_ = free[:, None] & free[None]
+        eye = np.eye(n + F, dtype=bool)[n:].reshape((F, n + F) + (1,) * (use.ndim - 1))
+        diag_t = jnp.where(eye, tv[:, None], 0.0)
+        target = jnp.concatenate([jnp.zeros((n, n + F) + diag_t.shape[2:], st.cov.dtype), diag_t])
+        cov = jnp.where(keep_, st.cov, st.cov * (1.0 + 1e-9) + 0.0 * target if "same" in skip else target)
+    if "mean" in skip:
+        mean = st.mean
+    if "barrier" in skip:
+        mean, cov = jax.lax.optimization_barrier((mean, cov))
+    return IMMState(mean, cov, st.log_mode_probs), since.astype(jnp.int32)
+
+def mk(skip, none=False):
+    def step(st, u, y):
+        imm0, since = st.imm, st.since
+        if not none:
+            imm0, since = reset_v(s, n, st.imm, st.cache.use, st.declared, st.since, None, skip)
+        i2, _ = imm_step(d.aug, imm0, st.cache, ip, u, y, gate=d.gate, with_cov=False)
+        return st._replace(imm=i2, since=since), None
+    return scan_fn(step)
+V = {"uimm": variants["uimm"], "imm only": (mk((), True), s0)}
+for skip in [(), ("cov",), ("bar2",)]:
+    V["reset skip " + "+".join(skip)] = (mk(skip), s0)
+res = {k: [] for k in V}
+for k, (f, s_) in V.items():
+    jax.block_until_ready(f(s_, u, y))
+for r in range(REP):
+    for k, (f, s_) in V.items():
+        t0 = time.process_time(); jax.block_until_ready(f(s_, u, y)); res[k].append(1e6 * (time.process_time() - t0) / N)
+base = np.median(res["uimm"])
+for k, v in res.items():
+    print(f"{k:28s} {np.median(v):.3f} us/step  {np.median(v)/base:.2f}x")
+
+if len(sys.argv) > 2:
+    for k in ["reset skip ", "reset skip cov"]:
+        f, s_ = V[k]
+        txt = f.lower(s_, u[:100], y[:100]).compile().as_text()
+        open(f"/tmp/hlo3_{k.replace(' ','_')}.txt", "w").write(txt)
+        import re
+        print(k, "fusions", len(re.findall(r"kind=k", txt)), "copies", txt.count(" copy("), "transposes", txt.count(" transpose("), "lines", txt.count("\n"))
