@@ -141,7 +141,8 @@ BLOCKS = (
     # ---------------------------------------------------------------- README.md
     Entry("README.md", "pip install -e . && uimm-jax run", "run", drop=3,
           creates=("out/sim1/summary.json", "out/sim1/timeseries.npz",
-                   "out/sim1/mode_probabilities.png", "out/sim1/states.png")),
+                   "out/sim1/mode_probabilities.png", "out/sim1/states.png",
+                   "out/sim1/innovation.png")),
     Entry("README.md", "pip install -e '.[test]' && pytest -q", "skip",
           reason="the suite itself (CI runs this line verbatim, .ci/run)"),
     Entry("README.md", "# 1. A scenario file, end to end.", "run"),
@@ -149,7 +150,8 @@ BLOCKS = (
     Entry("README.md", "src/uimm_jax/", "text"),
     # ---------------------------------------------------------------- docs/measurements.md
     Entry("docs/measurements.md", "uimm-jax run scenarios/paper_sim1_tuned.toml --measurements",
-          "run", setup="my_run_csv", creates=("out/summary.json", "out/states.png")),
+          "run", setup="my_run_csv",
+          creates=("out/summary.json", "out/states.png", "out/innovation.png")),
     Entry("docs/measurements.md", "load_measurements(\"my_run.csv\"", "run", setup="my_run_csv"),
     Entry("docs/measurements.md", "t,x_p,v_p,p_h,i_v", "csv"),
     # ---------------------------------------------------------------- docs/model_count.md

@@ -374,6 +374,45 @@ def test_plot_loss_curve(tmp_path):
     _saved(fig, tmp_path, "loss_dict")
 
 
+def test_innovation_window_means_equal_a_loop_and_skip_missing_samples():
+    """Each window's mean of each output's NIS, NaN (missing) left out, the last window
+    partial, a window with nothing observed NaN: against a plain loop."""
+    from uimm_jax.studies.plots_innovation import window_means
+
+    rng = np.random.default_rng(0)
+    a = rng.chisquare(1, (1037, 2))
+    a[rng.random(a.shape) < 0.2] = np.nan
+    a[100:200, 1] = np.nan  # window 1 of output 1: nothing observed
+    start, got = window_means(a, 100)
+    assert start.tolist() == list(range(0, 1037, 100)) and got.shape == (11, 2)
+    for w, s0 in enumerate(start):
+        for i in range(2):
+            block = [v for v in a[s0 : s0 + 100, i] if np.isfinite(v)]
+            want = np.mean(block) if block else np.nan
+            np.testing.assert_allclose(got[w, i], want, rtol=1e-13, equal_nan=True)
+    assert np.isnan(got[1, 1])
+
+
+def test_plot_innovation_one_panel_per_output(tmp_path):
+    """The figure of the innovation check: a panel per output, each with its run mean."""
+    from uimm_jax.studies.plots_innovation import plot_innovation
+
+    rng = np.random.default_rng(1)
+    t = np.arange(1, 5001) * 1e-3
+    ch = rng.chisquare(1, (5000, 3)) * np.array([1.0, 4.0, 1.0])
+    ch[::7, 2] = np.nan
+    fig = plot_innovation(
+        t, ch, ["x_p", "v_p", "p_h"], events=[(2.0, "leak")], declarations=[(2.1, "leak")]
+    )
+    assert len(fig.axes) == 3
+    labels = [ax.get_ylabel().split()[0] for ax in fig.axes]
+    assert labels == ["x_p", "v_p", "p_h"]
+    texts = [ax.texts[0].get_text() for ax in fig.axes]
+    assert texts[1] == f"run mean {np.mean(ch[:, 1]):.3g}"
+    assert texts[2] == f"run mean {np.nanmean(ch[:, 2]):.3g}"
+    _saved(fig, tmp_path, "innovation")
+
+
 def test_no_pyplot_import():
     code = _LOADER + textwrap.dedent(
         """

@@ -131,6 +131,17 @@ def _write_figures(result, out: Path) -> list[str]:
             list(sc.plant.param_names),
             title=f"Estimated fault parameters vs truth - {title}",
         )
+    if "nis_channels" in o:
+        from uimm_jax.studies.plots_innovation import plot_innovation
+
+        figs["innovation.png"] = plot_innovation(
+            t,
+            o["nis_channels"],
+            list(sc.plant.output_names),
+            events=events,
+            declarations=decl,
+            title=f"Innovation check by output (1: the noise fits) - {title}",
+        )
     written = []
     for name, fig in figs.items():
         plots.save_figure(fig, out / name)
