@@ -92,7 +92,11 @@ def plot_innovation(
             ax.axvline(td, color="tab:red", ls=":", lw=0.8, label=None if k else "declaration")
         finite = means[np.isfinite(means[:, i]), i]
         top = max(2.0, float(np.max(finite)) * 1.1) if finite.size else 2.0
-        ax.set_ylim(0.0, top)
+        if top > 20.0:  # far off: a log scale keeps the band of 1 in view
+            ax.set_yscale("log")
+            ax.set_ylim(min(0.5, float(np.min(finite)) / 1.5), top * 1.5)
+        else:
+            ax.set_ylim(0.0, top)
         name = output_names[i] if i < len(output_names) else str(i)
         seen = ch[np.isfinite(ch[:, i]), i]
         mean = float(np.mean(seen)) if seen.size else float("nan")
