@@ -314,6 +314,49 @@ def test_innovation_check_by_output_names_the_one_whose_noise_is_off(channel):
     assert off == [names[channel]] and by[names[channel]]["verdict"] == "noise too small"
 
 
+def test_unexplained_spells_find_a_stretch_of_large_innovations_and_nothing_else():
+    """``unexplained_spells``: on chi-square data of the filter's own noise, no spell; with
+    a stretch of 4x larger innovations, one spell covering it to within a window; a
+    stretch shorter than 3 windows or with nothing observed makes none."""
+    rng = np.random.default_rng(2)
+    dt, N, m = 1e-3, 20_000, 3
+    ch = rng.chisquare(1, (N, m))  # uncorrelated outputs: e' S^-1 e is their sum
+    nis = ch.mean(axis=1)
+    assert metrics.unexplained_spells(nis, ch, dt) == []
+    bad = nis.copy()
+    bad[5000:9000] *= 4.0  # 4 s
+    bad[12000:12150] *= 4.0  # 0.15 s: 2 windows of 0.1 s, under 3
+    spells = metrics.unexplained_spells(bad, ch, dt)
+    assert len(spells) == 1
+    assert 5.0 <= spells[0]["start"] <= 5.1 and 8.9 <= spells[0]["end"] <= 9.0
+    assert 3.5 < spells[0]["peak_nis"] < 5.0
+    gap = bad.copy()
+    gap[5000:9000] = np.nan  # nothing observed there: nothing to flag
+    assert metrics.unexplained_spells(gap, np.where(np.isnan(gap)[:, None], np.nan, ch), dt) == []
+    assert metrics.unexplained_spells(bad, ch, dt, windows=2)[1]["start"] == pytest.approx(12.001)
+
+
+@pytest.mark.parametrize(("method", "flagged"), [("uimm", True), ("uimm-est", False)])
+def test_unexplained_flags_the_fixed_uimm_on_a_fault_off_its_library_size(method, flagged):
+    """Valve wear at 3x its library size from 0.4 s: the fixed-size UIMM cannot explain
+    the data from there (docs/montecarlo.md: NIS 1e2-1e5), uimm-est can."""
+    from _robustness_helpers import short_dict
+    from uimm_jax.scenario.parse import parse_scenario
+    from uimm_jax.studies.run import run_scenario
+
+    d = short_dict(1, duration=1.2, events=(0.4, 0.5))
+    d["events"] = [{"time": 0.4, "fault": "valve_wear", "magnitude": 3.0}]
+    d["filter"]["method"] = method
+    if method == "uimm":
+        d["filter"].pop("est", None)
+    spells = run_scenario(parse_scenario(d)).summary["innovation_check"]["unexplained"]
+    if flagged:
+        assert len(spells) == 1 and 0.4 <= spells[0]["start"] <= 0.5
+        assert spells[0]["end"] == pytest.approx(1.2) and spells[0]["peak_nis"] > 100
+    else:
+        assert spells == []
+
+
 def test_innovation_check_of_chi_square_samples_and_of_nothing_observed():
     rng = np.random.default_rng(0)
     m = 3

@@ -184,6 +184,11 @@ def _print_summary(s: dict) -> None:
             each = ", ".join(f"{k} {v['mean_nis']:.3g}" for k, v in by.items())
             odd = [k for k, v in by.items() if v["verdict"] != "consistent"]
             print(f"  by output         {each}" + (f"  (off: {', '.join(odd)})" if odd else ""))
+        for sp in ic.get("unexplained") or []:  # the bank does not explain the data there
+            print(
+                f"  unexplained       {sp['start']:.4g}-{sp['end']:.4g} s (NIS up to "
+                f"{sp['peak_nis']:.3g} a window): neither the bank nor the noise fits the data"
+            )
     comp = s.get("compile_s")
     # One chunk (a short run) gives no steady-state rate: its time includes compilation.
     how = f"steady state, compile {comp:.1f} s" if comp is not None else "compilation included"

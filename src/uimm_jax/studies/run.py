@@ -556,7 +556,7 @@ def summarize(
     health = metrics.health_counts(outputs["health"])
     fdi = metrics.fdi_rates(run_fdi_counts(setup, truth_codes, outputs), N)
     nis = [outputs[k] if k in outputs else None for k in ("nis", "nis_channels")]
-    ic = None if nis[0] is None else metrics.innovation_check(*nis, sc.plant.output_names)
+    ic = None if nis[0] is None else metrics.innovation_check(*nis, sc.plant.output_names, dt)
     return {
         "scenario": sc.name,
         "source": sc.source,
