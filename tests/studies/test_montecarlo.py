@@ -375,6 +375,7 @@ def test_sweep_matches_loop_of_single_runs(sweep):
     faults = list(sc.fault_names)
     assert len(sweep.cells) == 10
     detected_any = false_any = 0
+    unexplained_runs = {1.0: 0, 2.0: 0}
     for cell in sweep.cells:
         c = cell.index
         ref_delays = {f: [] for f in faults}
@@ -397,6 +398,13 @@ def test_sweep_matches_loop_of_single_runs(sweep):
             mean_nis = s["innovation_check"]["mean_nis_per_channel"]
             assert sweep.nis[c, r] / N == pytest.approx(mean_nis, rel=1e-9)
             ref_nis += mean_nis
+            # Unexplained spells: the first one starts on the same step on the device.
+            spells = s["innovation_check"]["unexplained"]
+            first = int(sweep.unexplained[c, r])
+            assert (first >= 0) == bool(spells)
+            if spells:
+                assert metrics.sample_time(first + 1, dt) == spells[0]["start"]
+                unexplained_runs[cell.noise_scale] += 1
             # TDR, FAR, FIA: accumulated on the device = computed on the host (one definition).
             got = metrics.fdi_rates(metrics.FDICounts(*(a[c, r] for a in sweep.fdi)), N)
             assert (got["tdr"], got["far"]) == (s["tdr"], s["far"])
@@ -429,11 +437,69 @@ def test_sweep_matches_loop_of_single_runs(sweep):
             list(summ["state_rmse"].values()), np.sqrt(ref_sq / (RUNS * N)), rtol=1e-9
         )
         assert summ["mean_nis_per_channel"] == pytest.approx(ref_nis / RUNS, rel=1e-9)
+        assert summ["runs_unexplained"] == int(np.sum(sweep.unexplained[c] >= 0))
         detected_any += sum(len(v) for v in ref_delays.values())
         false_any += ref_false
+    # 0.2 s runs hold two windows of 0.1 s: no spell of three (the next tests make some).
+    assert unexplained_runs == {1.0: 0, 2.0: 0}
     # The small sweep exercises both detections and misses.
     assert detected_any > 0
     assert np.any(~sweep.detected() & (sweep.onset_step >= 0))
+
+
+def test_track_spells_on_the_device_equals_spell_steps():
+    """The scan's spell tracker finds each run's first spell on the step the NumPy rule
+    does: random chi-square innovations, stretches 3x larger of 2-6 windows, gaps."""
+    from uimm_jax.engine.innovation import SpellTracker, spell_steps, track_spells
+
+    rng = np.random.default_rng(5)
+    B, w, N, m = 16, 50, 2000, 3
+    q = rng.chisquare(m, (N, B))
+    obs = np.full((N, B), m)
+    for b in range(B):
+        a = int(rng.integers(0, N - 6 * w))
+        q[a : a + int(rng.integers(2, 7)) * w, b] *= 3.0
+    q[300:400, 0] = np.nan
+    obs[300:400, 0] = 0
+
+    def body(t, inp):
+        k, qk, ok = inp
+        return track_spells(t, k, qk, ok, w), None
+
+    t0 = SpellTracker.empty(B, jnp.float64)
+    ks = jnp.arange(N, dtype=jnp.int32)
+    t, _ = jax.lax.scan(body, t0, (ks, jnp.asarray(q), jnp.asarray(obs)))
+    first = np.asarray(t.first)
+    flagged = 0
+    for b in range(B):
+        spells = spell_steps(q[:, b], obs[:, b], w)
+        assert first[b] == (spells[0][0] if spells else -1)
+        flagged += bool(spells)
+    assert 0 < flagged < B
+
+
+def test_sweep_counts_runs_whose_innovations_the_bank_does_not_explain():
+    """0.35 s fault-free runs: with the truth's noise doubled (noise_scale 2) every run has
+    an unexplained spell from its first sample, with the filter's own noise none; the cell
+    counts them and runs.csv gives each start."""
+    from uimm_jax.studies.exports import run_rows
+
+    d = scenario_to_dict(load_scenario(ROOT / "scenarios" / "paper_sim1_tuned.toml"))
+    d["duration"] = 0.35
+    d["events"] = []
+    d["sweep"] = {
+        "runs": 2, "seed": SEED, "methods": ["uimm"], "noise_scales": [1.0, 2.0],
+        "fault_free": True, "cases": [],
+    }  # fmt: skip
+    sc = parse_scenario(d, source="small")
+    res = mc.run_sweep(sc)
+    by_scale = {s["noise_scale"]: s["runs_unexplained"] for s in res.summaries}
+    assert by_scale == {1.0: 0, 2.0: 2}
+    c2 = next(i for i, s in enumerate(res.summaries) if s["noise_scale"] == 2.0)
+    np.testing.assert_array_equal(res.unexplained[c2], [0, 0])
+    head, rows = run_rows(res)
+    starts = sorted(str(row[head.index("unexplained_s")]) for row in rows)
+    assert starts == ["", "", "0.0001", "0.0001"]
 
 
 def test_cells_and_json_schema(sweep):
@@ -577,6 +643,8 @@ def test_runs_csv_one_row_per_run(sweep, tmp_path):
     for c, summ in enumerate(sweep.summaries):
         nis = [float(row["nis"]) for row in rows if int(row["cell"]) == c]
         assert np.mean(nis) == pytest.approx(summ["mean_nis_per_channel"], rel=1e-12)
+        flagged = [row["unexplained_s"] != "" for row in rows if int(row["cell"]) == c]
+        assert sum(flagged) == summ["runs_unexplained"]
     free = {
         s["noise_scale"]: s["mean_nis_per_channel"]
         for s in sweep.summaries

@@ -123,7 +123,7 @@ def _print_table(result) -> None:
     print(
         f"{'method':6s} {'case':24s} {'mag':>5s} {'noise':>5s} {'runs':>5s}  "
         + "  ".join(f"{f[:12]:>12s} Pd / med ms" for f in faults)
-        + f"  {'false':>5s} {'FA/h':>8s} {'isol':>6s} {'mode acc':>8s} {'NIS':>6s}"
+        + f"  {'false':>5s} {'FA/h':>8s} {'isol':>6s} {'mode acc':>8s} {'NIS':>6s} {'unexpl':>6s}"
     )
     for s in result.summaries:
         cols = []
@@ -138,7 +138,8 @@ def _print_table(result) -> None:
             f"{s['runs']:5d}  " + "  ".join(cols) + f"  {s['false_declarations']:5d} "
             f"{_fmt(s['false_alarm_rate_per_hour'], '8.2f'):>8s} "
             f"{_fmt(s['isolation_accuracy'], '.3f'):>6s} {s['mode_accuracy']:8.4f} "
-            f"{_fmt(s.get('mean_nis_per_channel'), '.3g'):>6s}"
+            f"{_fmt(s.get('mean_nis_per_channel'), '.3g'):>6s} "
+            f"{_fmt(s.get('runs_unexplained'), 'd'):>6s}"
         )
 
 

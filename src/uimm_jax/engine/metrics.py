@@ -59,6 +59,7 @@ from uimm_jax.engine.imm import (
     HEALTH_MISSING,
     HEALTH_NONFINITE,
 )
+from uimm_jax.engine.innovation import UNEXPLAINED, SpellTracker, spell_steps, track_spells
 
 __all__ = [
     "EstMetrics",
@@ -186,6 +187,8 @@ class RunMetrics(NamedTuple):
         fdi: :class:`FDICounts` of each run, ``(B,)`` leaves (TDR, FAR, FIA).
         nis: ``(B,)`` sum over the observed steps of the most probable model's NIS per
             channel (:func:`uimm_jax.engine.scan.leading_nis`; :func:`innovation_check`).
+        spells: :class:`~uimm_jax.engine.innovation.SpellTracker`, whose ``first`` is the
+            first step of each run's first unexplained spell, -1 if none.
     """
 
     decl_step: jax.Array
@@ -194,6 +197,7 @@ class RunMetrics(NamedTuple):
     health: jax.Array
     fdi: FDICounts
     nis: jax.Array
+    spells: SpellTracker
 
 
 def init_metrics(runs: int, num_faults: int, state_dim: int, dtype) -> RunMetrics:
@@ -207,6 +211,7 @@ def init_metrics(runs: int, num_faults: int, state_dim: int, dtype) -> RunMetric
             *(jnp.zeros((runs,), jnp.int32) for _ in range(3)), jnp.zeros((runs,), dtype)
         ),
         nis=jnp.zeros((runs,), dtype),
+        spells=SpellTracker.empty(runs, dtype),
     )
 
 
@@ -225,7 +230,19 @@ def new_declarations(decl_step: jax.Array, before: jax.Array, after: jax.Array, 
 
 
 def update_metrics(
-    m: RunMetrics, k, before, after, recognised, code, mean, x, health, true_prob, nis
+    m: RunMetrics,
+    k,
+    before,
+    after,
+    recognised,
+    code,
+    mean,
+    x,
+    health,
+    true_prob,
+    nis,
+    observed,
+    window: int,
 ) -> RunMetrics:
     """One step of the :class:`RunMetrics` accumulators.
 
@@ -243,6 +260,8 @@ def update_metrics(
             (:func:`true_set_probability`).
         nis: ``(B,)`` the leading model's NIS per channel (NaN: nothing observed, not
             summed; a simulated truth observes every channel).
+        observed: ``(B,)`` channels observed at this step.
+        window: steps per window of the unexplained spells (static).
     """
     err = mean - x
     terms = fdi_terms(code, set_codes(after), true_prob)
@@ -253,6 +272,7 @@ def update_metrics(
         health=m.health | health,
         fdi=FDICounts(*(a + t.astype(a.dtype) for a, t in zip(m.fdi, terms, strict=True))),
         nis=m.nis + jnp.where(jnp.isfinite(nis), nis, 0.0).astype(m.nis.dtype),
+        spells=track_spells(m.spells, k, nis * observed, observed, window),
     )
 
 
@@ -377,29 +397,17 @@ def _nis_mean(seen: np.ndarray) -> dict:
     return {"band_99": [1.0 - half, 1.0 + half], "samples": int(seen.size), "verdict": verdict}
 
 
-UNEXPLAINED = {"window_s": 0.1, "z": 5.0, "windows": 3}
-""":func:`unexplained_spells`' defaults: windows of 0.1 s, a window whose innovations lie
-more than 5 standard deviations above what the filter's noise allows, 3 such windows in a
-row.  On the paper's full-length scenarios (both methods, 1000 windows each) no window
-passed z = 3.8 and no 3 in a row z = 1.3 (docs/montecarlo.md, "Innovation check")."""
-
-
 def unexplained_spells(nis, nis_channels, dt: float, **kw) -> list[dict]:
-    """Spells in which the data vary more than the filter's model and noise allow.
+    """The spells in which the bank and its noise stop explaining the data, in seconds.
 
-    At each step ``nis * m`` (``m`` the observed channels, counted from ``nis_channels``'
-    finite entries) is ``e' S^-1 e`` of the most probable model, ``chi^2_m`` when the bank
-    explains the data.  Over a window of ``window_s`` seconds its sum ``S`` has mean ``K``
-    (the channel-samples observed) and variance ``2 K`` then; a window is *flagged* when
-    ``(S - K) / sqrt(2 K) > z``, and ``windows`` flagged windows in a row make a spell:
-    a fault the bank does not hold, a noise set too small, a sensor gone bad.  Short
-    transients (a fault's onset before its declaration) do not make one.
+    The rule is :mod:`uimm_jax.engine.innovation`'s; this is ``summary.json``'s list.
 
     Args:
         nis: ``(N,)`` the leading model's NIS per observed channel (NaN: none observed).
-        nis_channels: ``(N, m)`` its per-output terms (NaN: missing), for ``m``.
+        nis_channels: ``(N, m)`` its per-output terms (NaN: missing), for the count of
+            observed channels at each step.
         dt: sample time (s); sample ``k`` is at ``(k + 1) dt``.
-        **kw: ``window_s``, ``z``, ``windows`` (default :data:`UNEXPLAINED`).
+        **kw: ``window_s``, ``z``, ``windows`` (default ``innovation.UNEXPLAINED``).
 
     Returns:
         ``[{"start": s, "end": s, "peak_nis": mean NIS per channel of the spell's worst
@@ -409,28 +417,12 @@ def unexplained_spells(nis, nis_channels, dt: float, **kw) -> list[dict]:
     nis = np.asarray(nis, np.float64)
     N = nis.shape[0]
     m_obs = np.isfinite(np.asarray(nis_channels, np.float64).reshape(N, -1)).sum(axis=1)
-    q = np.where(np.isfinite(nis), nis * m_obs, 0.0)
     w = max(1, int(round(cfg["window_s"] / dt)))
-    W = -(-N // w)
-    pad = W * w - N
-    K = np.concatenate([m_obs, np.zeros(pad)]).reshape(W, w).sum(axis=1)
-    S = np.concatenate([q, np.zeros(pad)]).reshape(W, w).sum(axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        zs = np.where(K > 0, (S - K) / np.sqrt(2.0 * np.maximum(K, 1)), -np.inf)
-        mean = np.where(K > 0, S / np.maximum(K, 1), np.nan)
-    flagged = np.concatenate([[False], zs > cfg["z"], [False]])
-    edges = np.flatnonzero(np.diff(flagged.astype(np.int8)))
-    spells = []
-    for a, b in zip(edges[::2], edges[1::2], strict=True):  # windows [a, b)
-        if b - a >= cfg["windows"]:
-            spells.append(
-                {
-                    "start": sample_time(a * w + 1, dt),
-                    "end": sample_time(min(N, b * w), dt),
-                    "peak_nis": float(np.max(mean[a:b])),
-                }
-            )
-    return spells
+    spells = spell_steps(nis * m_obs, m_obs, w, z=cfg["z"], windows=cfg["windows"])
+    return [
+        {"start": sample_time(a + 1, dt), "end": sample_time(b, dt), "peak_nis": peak}
+        for a, b, peak in spells
+    ]
 
 
 def innovation_check(nis, nis_channels=None, channel_names=None, dt=None) -> dict:

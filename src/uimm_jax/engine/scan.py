@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from uimm_jax.engine.innovation import UNEXPLAINED
 from uimm_jax.engine.metrics import EstMetrics, RunMetrics, update_est_metrics, update_metrics
 from uimm_jax.engine.noise import normal_pairs, pairs_to_normals
 from uimm_jax.engine.truth import (
@@ -214,8 +215,14 @@ class SimCarry(NamedTuple):
     est: EstMetrics | None = None
 
 
-def diagnose_scan(diag, p: int, params, carry: SimCarry, ks, us, xs, ys, codes) -> SimCarry:
-    """The diagnoser and the metric updates over simulated samples (see :func:`truth_scan`)."""
+def diagnose_scan(
+    diag, p: int, params, carry: SimCarry, ks, us, xs, ys, codes, window: int = 1000
+) -> SimCarry:
+    """The diagnoser and the metric updates over simulated samples (see :func:`truth_scan`).
+
+    ``window``: steps per window of the unexplained spells (``metrics.UNEXPLAINED``'s
+    ``window_s`` in samples; static).
+    """
 
     def body(c, inp):
         k, u, x, y, code = inp
@@ -235,6 +242,8 @@ def diagnose_scan(diag, p: int, params, carry: SimCarry, ks, us, xs, ys, codes) 
             info.step.health,
             jnp.exp(lp),
             leading_nis(info.step, y),
+            jnp.sum(jnp.isfinite(y), axis=0),
+            window,
         )
         e = c.est
         if e is not None:
@@ -267,7 +276,8 @@ def simulate_diagnose(
         ks: ``(L,)`` int32 steps of the chunk.
     """
     x_end, (us, xs, ys, codes) = truth_scan(diag.dyn, dt, p, plan, signal, keys, carry.x, ks)
-    carry = diagnose_scan(diag, p, params, carry, ks, us, xs, ys, codes)
+    window = max(1, int(round(UNEXPLAINED["window_s"] / dt)))
+    carry = diagnose_scan(diag, p, params, carry, ks, us, xs, ys, codes, window)
     return carry._replace(x=x_end)
 
 

@@ -168,8 +168,10 @@ def run_rows(result) -> tuple[list[str], list[list]]:
     fault ``<fault>:onset_s`` (the event time, ``onset step * dt``; empty: no event),
     ``<fault>:declared_s`` (the declaring sample's time, ``(step + 1) * dt``; empty: never
     declared) and ``<fault>:declaration`` (``correct``, ``false`` or empty), then
-    ``mode_accuracy``, ``tdr``, ``far``, ``fia`` and ``nis`` (the mean over the run of the
-    most probable model's NIS per channel, 1 when the filter's noise fits) of the run.  A
+    ``mode_accuracy``, ``tdr``, ``far``, ``fia``, ``nis`` (the mean over the run of the
+    most probable model's NIS per channel, 1 when the filter's noise fits) and
+    ``unexplained_s`` (the start of the run's first unexplained spell, ``(step + 1) * dt``;
+    empty: none; :mod:`uimm_jax.engine.innovation`) of the run.  A
     sweep with a size-estimating method (``uimm-est``) adds per fault, after
     ``<fault>:declaration``, ``<fault>:retracted_s`` (the time of its last retraction,
     ``(step + 1) * dt``; empty: never retracted), ``<fault>:magnitude`` and
@@ -187,7 +189,7 @@ def run_rows(result) -> tuple[list[str], list[list]]:
         head += [f"{f}:onset_s", f"{f}:declared_s", f"{f}:declaration"]
         if est is not None:
             head += [f"{f}:retracted_s", f"{f}:magnitude", f"{f}:magnitude_sd"]
-    head += ["mode_accuracy", "tdr", "far", "fia", "nis"]
+    head += ["mode_accuracy", "tdr", "far", "fia", "nis", "unexplained_s"]
     false = metrics.false_declared(result.onset_step, result.decl_step)  # (C, R, F)
     rows = []
     for cell in result.cells:
@@ -212,6 +214,8 @@ def run_rows(result) -> tuple[list[str], list[list]]:
                 rates = metrics.fdi_rates(counts, N)
             row += ["" if v is None else v for v in rates.values()]
             row.append("" if result.nis is None else float(result.nis[c, r]) / N)
+            u = -1 if result.unexplained is None else int(result.unexplained[c, r])
+            row.append("" if u < 0 else metrics.sample_time(u + 1, result.dt))
             rows.append(row)
     return head, rows
 

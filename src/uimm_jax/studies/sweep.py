@@ -415,6 +415,7 @@ def run_sweep(
                 health=m.health[:real],
                 **{f"fdi_{k}": v[:real] for k, v in m.fdi._asdict().items()},
                 nis=m.nis[:real],
+                unexplained=m.spells.first[:real],
             )
             for name, value in got.items():
                 getattr(fin, name)[c, r] = value
@@ -451,6 +452,7 @@ def run_sweep(
         health=health,
         fdi=fdi,
         nis=fin.nis,
+        unexplained=fin.unexplained,
         noise_keys=noise_keys,
         true_magnitude=mag_arr,
         end_step=end_arr,

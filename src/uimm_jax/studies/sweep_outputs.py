@@ -31,6 +31,9 @@ writes them.
   false alarm rate, fault isolation accuracy) pooled over the cell's samples, as defined
   in :mod:`uimm_jax.engine.metrics`;
 * ``state_rmse``: root mean square of the combined estimate's error, per state;
+* ``runs_unexplained``: runs with an unexplained spell, where the innovations are far
+  too large for the bank and its noise for at least 0.3 s
+  (:mod:`uimm_jax.engine.innovation`: a fault the bank does not hold, a wrong noise);
 * ``mean_nis_per_channel``: the most probable model's normalised innovation squared per
   channel, averaged over the cell's samples: 1 when the filter's noise is the truth's
   (the innovation check of a run, :func:`uimm_jax.engine.metrics.innovation_check`;
@@ -97,6 +100,8 @@ class SweepResult:
         health: ``(C, R)`` OR of the health flags.
         fdi: :class:`~uimm_jax.engine.metrics.FDICounts` of ``(C, R)`` arrays (TDR, FAR,
             FIA), or ``None``.
+        unexplained: ``(C, R)`` the first step of each run's first unexplained spell (-1:
+            none), or ``None``.
         nis: ``(C, R)`` each run's summed NIS per channel of the leading model (its mean
             over the run: ``/ num_steps``; the innovation check), or ``None``.
         noise_keys: ``(R, 2)`` uint32 noise key of each run, or ``None``.
@@ -128,6 +133,7 @@ class SweepResult:
     health: np.ndarray
     fdi: metrics.FDICounts | None = None
     nis: np.ndarray | None = None
+    unexplained: np.ndarray | None = None
     noise_keys: np.ndarray | None = None
     true_magnitude: np.ndarray | None = None
     end_step: np.ndarray | None = None
@@ -154,6 +160,7 @@ class SweepResult:
             "health": self.health,
             **{f"fdi_{k}": v for k, v in self.fdi._asdict().items()},
             **({} if self.nis is None else {"nis_sum": self.nis}),
+            **({} if self.unexplained is None else {"unexplained_step": self.unexplained}),
         }
 
     def detected(self) -> np.ndarray:
@@ -353,6 +360,9 @@ def cell_summary(result: SweepResult, index: int) -> dict:
         "mean_nis_per_channel": None
         if result.nis is None
         else float(result.nis[index].sum() / (R * N)),
+        "runs_unexplained": None
+        if result.unexplained is None
+        else int(np.sum(result.unexplained[index] >= 0)),
         "state_rmse": {s: float(v) for s, v in zip(result.states, rmse, strict=True)},
         "health": {f"runs_{name}": health[name] for name in _RUN_HEALTH},
         **estimate_summary(result, index),
@@ -386,6 +396,7 @@ def _csv_rows(result: SweepResult) -> tuple[list[str], list[list]]:
         "far",
         "fia",
         "mean_nis_per_channel",
+        "runs_unexplained",
     ] + [f"rmse:{s}" for s in result.states]
     rows = []
     for s in result.summaries:
@@ -415,6 +426,7 @@ def _csv_rows(result: SweepResult) -> tuple[list[str], list[list]]:
             s["far"],
             s["fia"],
             s.get("mean_nis_per_channel"),
+            s.get("runs_unexplained"),
         ] + [s["state_rmse"][st] for st in result.states]
         rows.append(["" if v is None else v for v in row])
     return head, rows

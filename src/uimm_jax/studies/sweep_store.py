@@ -48,7 +48,7 @@ from uimm_jax.studies.sweep_outputs import spec_settings
 
 __all__ = ["Finished", "SweepStore", "open_store"]
 
-FORMAT = "uimm-jax sweep checkpoint 2"
+FORMAT = "uimm-jax sweep checkpoint 3"
 MANIFEST = "manifest.json"
 _FIELDS = (
     "decl_step",
@@ -60,6 +60,7 @@ _FIELDS = (
     "fdi_flagged_free",
     "fdi_true_prob",
     "nis",
+    "unexplained",
 )
 _EST_FIELDS = (
     "est_retract_step",
@@ -84,6 +85,8 @@ class Finished(NamedTuple):
             one array per count (``fdi_flagged_faulty``, ``fdi_flagged_free``,
             ``fdi_true_prob`` likewise).
         nis: ``(C, R)`` summed NIS per channel of the leading model (``RunMetrics.nis``).
+        unexplained: ``(C, R)`` first step of the run's first unexplained spell (-1: none;
+            ``RunMetrics.spells``).
         est_retract_step: ``(C, R, F)`` the size-estimating method's retraction steps
             (-1); ``est_declarations`` ``(C, R, F)``, ``est_false_count`` ``(C, R)``,
             ``est_magnitude`` and ``est_magnitude_sd`` ``(C, R, F)`` (NaN) likewise
@@ -101,6 +104,7 @@ class Finished(NamedTuple):
     fdi_flagged_free: np.ndarray
     fdi_true_prob: np.ndarray
     nis: np.ndarray
+    unexplained: np.ndarray
     est_retract_step: np.ndarray
     est_declarations: np.ndarray
     est_false_count: np.ndarray
@@ -121,6 +125,7 @@ class Finished(NamedTuple):
             fdi_flagged_free=np.zeros((C, R), np.int64),
             fdi_true_prob=np.zeros((C, R)),
             nis=np.zeros((C, R)),
+            unexplained=np.full((C, R), -1, np.int32),
             est_retract_step=np.full((C, R, F), -1, np.int32),
             est_declarations=np.zeros((C, R, F), np.int32),
             est_false_count=np.zeros((C, R), np.int32),
