@@ -216,11 +216,11 @@ class SimCarry(NamedTuple):
 
 
 def diagnose_scan(
-    diag, p: int, params, carry: SimCarry, ks, us, xs, ys, codes, window: int = 1000
+    diag, p: int, params, carry: SimCarry, ks, us, xs, ys, codes, window: int
 ) -> SimCarry:
     """The diagnoser and the metric updates over simulated samples (see :func:`truth_scan`).
 
-    ``window``: steps per window of the unexplained spells (``metrics.UNEXPLAINED``'s
+    ``window``: steps per window of the unexplained spells (``innovation.UNEXPLAINED``'s
     ``window_s`` in samples; static).
     """
 
