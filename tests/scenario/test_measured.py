@@ -326,3 +326,4 @@ def test_cli_measurements_end_to_end(tmp_path, sc, sim, monkeypatch, capsys):
     seen = {name: int(np.isfinite(y[:, i]).sum()) for i, name in enumerate(header[1:4])}
     assert {k: v["samples"] for k, v in ic["by_channel"].items()} == seen
     assert all(v["verdict"] == "consistent" for v in ic["by_channel"].values())
+    assert ic["unexplained"] == []  # gaps do not make innovations look unexplained
