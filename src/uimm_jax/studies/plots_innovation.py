@@ -99,9 +99,9 @@ def plot_innovation(
             ax.set_ylim(0.0, top)
         name = output_names[i] if i < len(output_names) else str(i)
         seen = ch[np.isfinite(ch[:, i]), i]
-        mean = float(np.mean(seen)) if seen.size else float("nan")
+        note = f"run mean {float(np.mean(seen)):.3g}" if seen.size else "never observed"
         ax.set_ylabel(f"{name}\nNIS")
-        ax.text(0.005, 0.95, f"run mean {mean:.3g}", transform=ax.transAxes, va="top", fontsize=8)
+        ax.text(0.005, 0.95, note, transform=ax.transAxes, va="top", fontsize=8)
     axes[0].legend(loc="upper right", fontsize=7, ncols=3)
     axes[-1].set_xlabel("time (s)")
     fig.suptitle(
