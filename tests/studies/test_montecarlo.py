@@ -397,6 +397,11 @@ def test_sweep_matches_loop_of_single_runs(sweep):
             # The innovation check: the sweep's on-device sum = the single run's summary.
             mean_nis = s["innovation_check"]["mean_nis_per_channel"]
             assert sweep.nis[c, r] / N == pytest.approx(mean_nis, rel=1e-9)
+            by = s["innovation_check"]["by_channel"]
+            assert list(by) == list(sweep.outputs)
+            np.testing.assert_allclose(
+                sweep.nis_channels[c, r] / N, [v["mean_nis"] for v in by.values()], rtol=1e-9
+            )
             ref_nis += mean_nis
             # Unexplained spells: the first one starts on the same step on the device.
             spells = s["innovation_check"]["unexplained"]
@@ -438,6 +443,11 @@ def test_sweep_matches_loop_of_single_runs(sweep):
         )
         assert summ["mean_nis_per_channel"] == pytest.approx(ref_nis / RUNS, rel=1e-9)
         assert summ["runs_unexplained"] == int(np.sum(sweep.unexplained[c] >= 0))
+        np.testing.assert_allclose(
+            list(summ["mean_nis_by_output"].values()),
+            sweep.nis_channels[c].sum(axis=0) / (RUNS * N),
+            rtol=1e-12,
+        )
         detected_any += sum(len(v) for v in ref_delays.values())
         false_any += ref_false
     # 0.2 s runs hold two windows of 0.1 s: no spell of three (the next tests make some).

@@ -189,6 +189,8 @@ class RunMetrics(NamedTuple):
             channel (:func:`uimm_jax.engine.scan.leading_nis`; :func:`innovation_check`).
         spells: :class:`~uimm_jax.engine.innovation.SpellTracker`, whose ``first`` is the
             first step of each run's first unexplained spell, -1 if none.
+        nis_channels: ``(m, B)`` sum over the observed steps of the same model's
+            ``e_i^2 / S_ii`` per output (:func:`uimm_jax.engine.scan.leading_nis_channels`).
     """
 
     decl_step: jax.Array
@@ -198,10 +200,11 @@ class RunMetrics(NamedTuple):
     fdi: FDICounts
     nis: jax.Array
     spells: SpellTracker
+    nis_channels: jax.Array
 
 
-def init_metrics(runs: int, num_faults: int, state_dim: int, dtype) -> RunMetrics:
-    """Empty :class:`RunMetrics` of ``runs`` runs."""
+def init_metrics(runs: int, num_faults: int, state_dim: int, dtype, outputs: int) -> RunMetrics:
+    """Empty :class:`RunMetrics` of ``runs`` runs (``outputs``: measured outputs ``m``)."""
     return RunMetrics(
         decl_step=jnp.full((num_faults, runs), -1, jnp.int32),
         correct=jnp.zeros((runs,), jnp.int32),
@@ -212,6 +215,7 @@ def init_metrics(runs: int, num_faults: int, state_dim: int, dtype) -> RunMetric
         ),
         nis=jnp.zeros((runs,), dtype),
         spells=SpellTracker.empty(runs, dtype),
+        nis_channels=jnp.zeros((outputs, runs), dtype),
     )
 
 
@@ -243,6 +247,7 @@ def update_metrics(
     nis,
     observed,
     window: int,
+    nis_channels,
 ) -> RunMetrics:
     """One step of the :class:`RunMetrics` accumulators.
 
@@ -262,6 +267,7 @@ def update_metrics(
             summed; a simulated truth observes every channel).
         observed: ``(B,)`` channels observed at this step.
         window: steps per window of the unexplained spells (static).
+        nis_channels: ``(m, B)`` the leading model's ``e_i^2 / S_ii`` (NaN: missing).
     """
     err = mean - x
     terms = fdi_terms(code, set_codes(after), true_prob)
@@ -273,6 +279,8 @@ def update_metrics(
         fdi=FDICounts(*(a + t.astype(a.dtype) for a, t in zip(m.fdi, terms, strict=True))),
         nis=m.nis + jnp.where(jnp.isfinite(nis), nis, 0.0).astype(m.nis.dtype),
         spells=track_spells(m.spells, k, nis * observed, observed, window),
+        nis_channels=m.nis_channels
+        + jnp.where(jnp.isfinite(nis_channels), nis_channels, 0.0).astype(m.nis.dtype),
     )
 
 

@@ -244,6 +244,7 @@ def diagnose_scan(
             leading_nis(info.step, y),
             jnp.sum(jnp.isfinite(y), axis=0),
             window,
+            leading_nis_channels(info.step, y),
         )
         e = c.est
         if e is not None:

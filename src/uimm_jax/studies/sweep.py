@@ -348,11 +348,12 @@ def run_sweep(
     store = None
     if checkpoint is not None:
         manifest = manifest_for(scenario, spec, dtype, B, nd)
-        store, fin = open_store(checkpoint, manifest, resume=resume, shape=(C, R, F, n))
+        shape = (C, R, F, n, scenario.plant.output_dim)
+        store, fin = open_store(checkpoint, manifest, resume=resume, shape=shape)
     elif resume:
         raise ValueError("resume: give the checkpoint folder to resume from")
     else:
-        fin = Finished.empty(C, R, F, n)
+        fin = Finished.empty(C, R, F, n, scenario.plant.output_dim)
     decl_step, correct, sq_err, health = fin.decl_step, fin.correct, fin.sq_err, fin.health
     est_arr = {k[4:]: v for k, v in fin._asdict().items() if k.startswith("est_")}
     chunk_len = spec.chunk or _even_chunk(N, max(1000, CHUNK_RUN_STEPS // B))
@@ -416,6 +417,7 @@ def run_sweep(
                 **{f"fdi_{k}": v[:real] for k, v in m.fdi._asdict().items()},
                 nis=m.nis[:real],
                 unexplained=m.spells.first[:real],
+                nis_channels=m.nis_channels.T[:real],
             )
             for name, value in got.items():
                 getattr(fin, name)[c, r] = value
@@ -453,6 +455,8 @@ def run_sweep(
         fdi=fdi,
         nis=fin.nis,
         unexplained=fin.unexplained,
+        nis_channels=fin.nis_channels,
+        outputs=tuple(scenario.plant.output_names),
         noise_keys=noise_keys,
         true_magnitude=mag_arr,
         end_step=end_arr,

@@ -78,7 +78,7 @@ def batch_inputs(
     carry = SimCarry(
         x=jnp.zeros((n, B), dtype),
         diag=_broadcast_state(setup.init_state, B),
-        metrics=init_metrics(B, scenario.num_faults, n, dtype),
+        metrics=init_metrics(B, scenario.num_faults, n, dtype, scenario.plant.output_dim),
         est=(
             init_est_metrics(B, scenario.num_faults, dtype)
             if isinstance(setup.diagnoser, UIMMEstDiagnoser)

@@ -34,6 +34,8 @@ writes them.
 * ``runs_unexplained``: runs with an unexplained spell, where the innovations are far
   too large for the bank and its noise for at least 0.3 s
   (:mod:`uimm_jax.engine.innovation`: a fault the bank does not hold, a wrong noise);
+* ``mean_nis_by_output``: per measured output, the same model's ``e_i^2 / S_ii`` averaged
+  over the cell's samples (1 when that output's noise fits; the run's ``by_channel``);
 * ``mean_nis_per_channel``: the most probable model's normalised innovation squared per
   channel, averaged over the cell's samples: 1 when the filter's noise is the truth's
   (the innovation check of a run, :func:`uimm_jax.engine.metrics.innovation_check`;
@@ -102,6 +104,8 @@ class SweepResult:
             FIA), or ``None``.
         unexplained: ``(C, R)`` the first step of each run's first unexplained spell (-1:
             none), or ``None``.
+        nis_channels: ``(C, R, m)`` each run's summed per-output NIS of the leading model,
+            or ``None``; ``outputs``: the ``m`` output names.
         nis: ``(C, R)`` each run's summed NIS per channel of the leading model (its mean
             over the run: ``/ num_steps``; the innovation check), or ``None``.
         noise_keys: ``(R, 2)`` uint32 noise key of each run, or ``None``.
@@ -134,6 +138,8 @@ class SweepResult:
     fdi: metrics.FDICounts | None = None
     nis: np.ndarray | None = None
     unexplained: np.ndarray | None = None
+    nis_channels: np.ndarray | None = None
+    outputs: tuple[str, ...] = ()
     noise_keys: np.ndarray | None = None
     true_magnitude: np.ndarray | None = None
     end_step: np.ndarray | None = None
@@ -161,6 +167,7 @@ class SweepResult:
             **{f"fdi_{k}": v for k, v in self.fdi._asdict().items()},
             **({} if self.nis is None else {"nis_sum": self.nis}),
             **({} if self.unexplained is None else {"unexplained_step": self.unexplained}),
+            **({} if self.nis_channels is None else {"nis_by_output_sum": self.nis_channels}),
         }
 
     def detected(self) -> np.ndarray:
@@ -360,6 +367,12 @@ def cell_summary(result: SweepResult, index: int) -> dict:
         "mean_nis_per_channel": None
         if result.nis is None
         else float(result.nis[index].sum() / (R * N)),
+        "mean_nis_by_output": None
+        if result.nis_channels is None
+        else {
+            o: float(result.nis_channels[index, :, i].sum() / (R * N))
+            for i, o in enumerate(result.outputs)
+        },
         "runs_unexplained": None
         if result.unexplained is None
         else int(np.sum(result.unexplained[index] >= 0)),
@@ -397,7 +410,8 @@ def _csv_rows(result: SweepResult) -> tuple[list[str], list[list]]:
         "fia",
         "mean_nis_per_channel",
         "runs_unexplained",
-    ] + [f"rmse:{s}" for s in result.states]
+    ]
+    head += [f"nis:{o}" for o in result.outputs] + [f"rmse:{s}" for s in result.states]
     rows = []
     for s in result.summaries:
         row = [s["method"], s["case"], s["magnitude"], s["noise_scale"], s["runs"]]
@@ -427,7 +441,9 @@ def _csv_rows(result: SweepResult) -> tuple[list[str], list[list]]:
             s["fia"],
             s.get("mean_nis_per_channel"),
             s.get("runs_unexplained"),
-        ] + [s["state_rmse"][st] for st in result.states]
+        ]
+        by = s.get("mean_nis_by_output") or {}
+        row += [by.get(o) for o in result.outputs] + [s["state_rmse"][st] for st in result.states]
         rows.append(["" if v is None else v for v in row])
     return head, rows
 

@@ -61,6 +61,7 @@ _FIELDS = (
     "fdi_true_prob",
     "nis",
     "unexplained",
+    "nis_channels",
 )
 _EST_FIELDS = (
     "est_retract_step",
@@ -87,6 +88,8 @@ class Finished(NamedTuple):
         nis: ``(C, R)`` summed NIS per channel of the leading model (``RunMetrics.nis``).
         unexplained: ``(C, R)`` first step of the run's first unexplained spell (-1: none;
             ``RunMetrics.spells``).
+        nis_channels: ``(C, R, m)`` summed per-output NIS of the leading model
+            (``RunMetrics.nis_channels``).
         est_retract_step: ``(C, R, F)`` the size-estimating method's retraction steps
             (-1); ``est_declarations`` ``(C, R, F)``, ``est_false_count`` ``(C, R)``,
             ``est_magnitude`` and ``est_magnitude_sd`` ``(C, R, F)`` (NaN) likewise
@@ -105,6 +108,7 @@ class Finished(NamedTuple):
     fdi_true_prob: np.ndarray
     nis: np.ndarray
     unexplained: np.ndarray
+    nis_channels: np.ndarray
     est_retract_step: np.ndarray
     est_declarations: np.ndarray
     est_false_count: np.ndarray
@@ -112,8 +116,8 @@ class Finished(NamedTuple):
     est_magnitude_sd: np.ndarray
 
     @classmethod
-    def empty(cls, C: int, R: int, F: int, n: int) -> Finished:
-        """No run finished: ``C`` cells, ``R`` runs, ``F`` faults, ``n`` states."""
+    def empty(cls, C: int, R: int, F: int, n: int, m: int = 1) -> Finished:
+        """No run finished (``C`` cells, ``R`` runs, ``F`` faults, ``n`` states, ``m`` outputs)."""
         return cls(
             done=np.zeros((C, R), np.uint8),
             decl_step=np.full((C, R, F), -1, np.int32),
@@ -126,6 +130,7 @@ class Finished(NamedTuple):
             fdi_true_prob=np.zeros((C, R)),
             nis=np.zeros((C, R)),
             unexplained=np.full((C, R), -1, np.int32),
+            nis_channels=np.zeros((C, R, m)),
             est_retract_step=np.full((C, R, F), -1, np.int32),
             est_declarations=np.zeros((C, R, F), np.int32),
             est_false_count=np.zeros((C, R), np.int32),
@@ -225,7 +230,7 @@ class SweepStore:
         _atomic_write(path, lambda fh: np.savez(fh, cell=cells, run=runs, **arrays))
         return path
 
-    def load(self, shape: tuple[int, int, int, int]) -> Finished:
+    def load(self, shape: tuple[int, ...]) -> Finished:
         """The finished runs of every batch file, as ``(C, R, ...)`` arrays.
 
         A batch file written before the size arrays were stored (no ``est_*``) is read
@@ -233,10 +238,9 @@ class SweepStore:
         and refused otherwise.
 
         Args:
-            shape: ``(C, R, F, n)``: cells, runs, faults and states.
+            shape: ``(C, R, F, n[, m])``: cells, runs, faults, states and outputs.
         """
-        C, R, F, n = shape
-        fin = Finished.empty(C, R, F, n)
+        fin = Finished.empty(*shape)
         sizes = UIMMEstDiagnoser.method in (self.manifest.get("settings") or {}).get("methods", ())
         for path in self.batches():
             try:
@@ -310,7 +314,7 @@ def _open(folder: Path, manifest: dict, resume: bool, shape) -> tuple[SweepStore
 
 
 def open_store(
-    folder, manifest: dict, *, resume: bool, shape: tuple[int, int, int, int]
+    folder, manifest: dict, *, resume: bool, shape: tuple[int, ...]
 ) -> tuple[SweepStore | None, Finished]:
     """Open a checkpoint folder for a sweep (on every process of a multi-process sweep).
 
@@ -319,7 +323,8 @@ def open_store(
         manifest: :func:`manifest_for` of the sweep.
         resume: continue the sweep recorded there (else start afresh, refusing a folder
             that holds an unfinished sweep).
-        shape: ``(C, R, F, n)``: cells, runs, faults and states.
+        shape: ``(C, R, F, n[, m])``: cells, runs, faults, states and measured outputs
+            (``m`` 1 when left out).
 
     Returns:
         ``(store, finished)``: the store on process 0 (``None`` on the others) and the
