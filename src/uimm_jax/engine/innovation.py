@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["UNEXPLAINED", "SpellTracker", "spell_steps", "track_spells"]
+__all__ = ["UNEXPLAINED", "SpellTracker", "spell_steps", "track_spells", "window_sums"]
 
 UNEXPLAINED = {"window_s": 0.1, "z": 5.0, "windows": 3}
 """The defaults: windows of 0.1 s, a window whose innovations lie more than 5 standard
@@ -35,6 +35,21 @@ in a row z = 1.3 (docs/montecarlo.md, "Innovation check")."""
 def _zscore(q_sum, k_sum, xp):
     kk = xp.maximum(k_sum, 1).astype(q_sum.dtype)
     return (q_sum - k_sum) / xp.sqrt(2.0 * kk)
+
+
+def window_sums(a, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sums of ``(N, ...)`` values over consecutive windows of ``window`` steps from step 0.
+
+    Non-finite entries (missing) are left out.  The last, partial window is kept.  Returns
+    the sums and the counts of finite entries, ``(W, ...)`` each.
+    """
+    a = np.asarray(a, np.float64)
+    N, w = a.shape[0], max(1, int(window))
+    W = -(-N // w)
+    blocks = np.concatenate([a, np.full((W * w - N,) + a.shape[1:], np.nan)])
+    blocks = blocks.reshape((W, w) + a.shape[1:])
+    seen = np.isfinite(blocks)
+    return np.where(seen, blocks, 0.0).sum(axis=1), seen.sum(axis=1)
 
 
 def spell_steps(q, observed, window: int, **kw) -> list[tuple[int, int, float]]:
@@ -50,12 +65,9 @@ def spell_steps(q, observed, window: int, **kw) -> list[tuple[int, int, float]]:
     The run's last, partial window counts as a window.
     """
     cfg = UNEXPLAINED | kw
-    q = np.asarray(q, np.float64)
-    N, w = q.shape[0], max(1, int(window))
-    W = -(-N // w)
-    pad = np.zeros(W * w - N)
-    K = np.concatenate([np.asarray(observed, np.float64), pad]).reshape(W, w).sum(axis=1)
-    S = np.concatenate([np.where(np.isfinite(q), q, 0.0), pad]).reshape(W, w).sum(axis=1)
+    N, w = np.shape(q)[0], max(1, int(window))
+    S = window_sums(q, w)[0]
+    K = window_sums(observed, w)[0]
     zs = np.where(K > 0, _zscore(S, K, np), -np.inf)
     mean = np.where(K > 0, S / np.maximum(K, 1), np.nan)
     flagged = np.concatenate([[False], zs > cfg["z"], [False]])

@@ -17,6 +17,7 @@ from collections.abc import Sequence
 import numpy as np
 from matplotlib.figure import Figure
 
+from uimm_jax.engine.innovation import window_sums
 from uimm_jax.engine.metrics import NIS_BAND
 
 __all__ = ["plot_innovation", "window_means"]
@@ -30,18 +31,11 @@ def window_means(nis_channels: np.ndarray, window: int) -> tuple[np.ndarray, np.
     sample index of each window ``(W,)`` and the means ``(W, m)``.
     """
     a = np.asarray(nis_channels, np.float64)
-    a = a.reshape(a.shape[0], -1)
-    N, m = a.shape
     window = max(1, int(window))
-    W = -(-N // window)
-    pad = np.full((W * window - N, m), np.nan)
-    blocks = np.concatenate([a, pad]).reshape(W, window, m)
-    seen = np.isfinite(blocks)
-    counts = seen.sum(axis=1)
-    sums = np.where(seen, blocks, 0.0).sum(axis=1)
+    sums, counts = window_sums(a.reshape(a.shape[0], -1), window)
     with np.errstate(invalid="ignore", divide="ignore"):
         means = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
-    return np.arange(W) * window, means
+    return np.arange(sums.shape[0]) * window, means
 
 
 def plot_innovation(
