@@ -28,6 +28,20 @@ def scan_fn(step):
         return jax.lax.scan(body, s, (u, y))[0]
     return run
 
+def time_variants(V):
+    """Compile, then time every ``(scan, state)`` of ``V`` REP times, interleaved; print
+    us/step and the ratio to ``V["uimm"]`` (process CPU time, medians)."""
+    res = {k: [] for k in V}
+    for k, (f, s_) in V.items():
+        jax.block_until_ready(f(s_, u, y))
+    for r in range(REP):
+        for k, (f, s_) in V.items():
+            t0 = time.process_time(); jax.block_until_ready(f(s_, u, y)); res[k].append(1e6 * (time.process_time() - t0) / N)
+    base = np.median(res["uimm"])
+    for k, v in res.items():
+        print(f"{k:28s} {np.median(v):.3f} us/step  {np.median(v)/base:.2f}x")
+    return res
+
 variants = {}
 for m, st in setups.items():
     d, p = st.diagnoser, st.params
@@ -52,15 +66,8 @@ fs0 = one(fp.init_state)
 fcache = fs0.cache
 variants["fixed imm_step only"] = (scan_fn(fixed_imm_only), fs0.imm)
 
-res = {k: [] for k in variants}
-for k, (f, s) in variants.items():
-    jax.block_until_ready(f(s, u, y))
-for r in range(REP):
-    for k, (f, s) in variants.items():
-        t0 = time.process_time(); jax.block_until_ready(f(s, u, y)); res[k].append(1e6 * (time.process_time() - t0) / N)
-base = np.median(res["uimm"])
-for k, v in res.items():
-    print(f"{k:28s} {np.median(v):.3f} us/step  {np.median(v)/base:.2f}x")
+# ---- end of setup
+time_variants(variants)
 
 # ---- part 2: progressive pieces
 import dataclasses
@@ -85,13 +92,5 @@ V = {
   "est pre+imm+floor": (scan_fn(v_pre), s0),
   "est relin=1e6": (scan_fn(lambda st,u,y: d_norelin.step(st, p, u, y, with_cov=False)), s0),
 }
-res = {k: [] for k in V}
-for k, (f, s_) in V.items():
-    jax.block_until_ready(f(s_, u, y))
-for r in range(REP):
-    for k, (f, s_) in V.items():
-        t0 = time.process_time(); jax.block_until_ready(f(s_, u, y)); res[k].append(1e6 * (time.process_time() - t0) / N)
-base = np.median(res["uimm"])
 print("--- part 2")
-for k, v in res.items():
-    print(f"{k:28s} {np.median(v):.3f} us/step  {np.median(v)/base:.2f}x")
+time_variants(V)

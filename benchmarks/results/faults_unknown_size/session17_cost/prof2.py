@@ -1,7 +1,7 @@
 # ruff: noqa  (scratch harness of session 17, kept as run; see README.md)
 """Scratch: the est step's pre/post rules one at a time over the augmented imm_step."""
 import sys
-src = open("benchmarks/results/faults_unknown_size/session17_cost/prof.py").read().split("res = {k: [] for k in variants}")[0]
+src = open("benchmarks/results/faults_unknown_size/session17_cost/prof.py").read().split("# ---- end of setup")[0]
 exec(src)
 import time
 s = d.per_sample
@@ -23,12 +23,4 @@ def mk(parts):
 V = {"uimm": variants["uimm"]}
 for parts in [(), ("chal",), ("reset",), ("walk",), ("floor",), ("chal","reset","walk","floor")]:
     V["+".join(parts) or "imm only"] = (mk(parts), s0)
-res = {k: [] for k in V}
-for k, (f, s_) in V.items():
-    jax.block_until_ready(f(s_, u, y))
-for r in range(REP):
-    for k, (f, s_) in V.items():
-        t0 = time.process_time(); jax.block_until_ready(f(s_, u, y)); res[k].append(1e6 * (time.process_time() - t0) / N)
-base = np.median(res["uimm"])
-for k, v in res.items():
-    print(f"{k:28s} {np.median(v):.3f} us/step  {np.median(v)/base:.2f}x")
+time_variants(V)

@@ -1,7 +1,7 @@
 # ruff: noqa  (scratch harness of session 17, kept as run; see README.md)
 """Scratch: bisect reset_unused's cost."""
 import sys
-src = open("benchmarks/results/faults_unknown_size/session17_cost/prof.py").read().split("res = {k: [] for k in variants}")[0]
+src = open("benchmarks/results/faults_unknown_size/session17_cost/prof.py").read().split("# ---- end of setup")[0]
 exec(src)
 import time
 from uimm_jax.engine._est_rules import *
@@ -95,15 +95,7 @@ def mk(skip, none=False):
 V = {"uimm": variants["uimm"], "imm only": (mk((), True), s0)}
 for skip in [(), ("cov",), ("dyn1",)]:
     V["reset skip " + "+".join(skip)] = (mk(skip), s0)
-res = {k: [] for k in V}
-for k, (f, s_) in V.items():
-    jax.block_until_ready(f(s_, u, y))
-for r in range(REP):
-    for k, (f, s_) in V.items():
-        t0 = time.process_time(); jax.block_until_ready(f(s_, u, y)); res[k].append(1e6 * (time.process_time() - t0) / N)
-base = np.median(res["uimm"])
-for k, v in res.items():
-    print(f"{k:28s} {np.median(v):.3f} us/step  {np.median(v)/base:.2f}x")
+time_variants(V)
 
 if len(sys.argv) > 2:
     for k in ["reset skip dyn1", "reset skip cov"]:
