@@ -336,9 +336,7 @@ def leading_nis(info, y: jax.Array) -> jax.Array:
     it is ``chi^2_m / m``, of mean 1 (``m`` observed channels); NaN when no channel is
     observed.  ``summary.json``'s ``innovation_check`` averages it.
     """
-    lead = jnp.argmax(info.log_mode_probs, axis=0)
-    models = jnp.arange(info.nis.shape[0]).reshape((-1,) + (1,) * lead.ndim)
-    nis = jnp.sum(jnp.where(models == lead, info.nis, 0.0), axis=0)
+    nis = _at_lead(info.log_mode_probs, info.nis)
     m = jnp.sum(jnp.isfinite(y), axis=0)
     return jnp.where(m > 0, nis / jnp.maximum(m, 1).astype(nis.dtype), jnp.nan)
 
@@ -352,11 +350,14 @@ def leading_nis_channels(info, y: jax.Array) -> jax.Array:
     :func:`leading_nis` flags a mismatch, the channel whose mean is far from 1 is the one
     whose noise (or model) is off.
     """
-    lead = jnp.argmax(info.log_mode_probs, axis=0)
-    M = info.nis_channels.shape[1]
-    models = jnp.arange(M).reshape((1, -1) + (1,) * lead.ndim)
-    ch = jnp.sum(jnp.where(models == lead, info.nis_channels, 0.0), axis=1)
-    return jnp.where(jnp.isfinite(y), ch, jnp.nan)
+    return jnp.where(jnp.isfinite(y), _at_lead(info.log_mode_probs, info.nis_channels), jnp.nan)
+
+
+def _at_lead(log_mode_probs: jax.Array, values: jax.Array) -> jax.Array:
+    """``values`` ``(..., M, *runs)`` of the most probable model: ``(..., *runs)``."""
+    lead = jnp.argmax(log_mode_probs, axis=0)
+    models = jnp.arange(log_mode_probs.shape[0]).reshape((-1,) + (1,) * lead.ndim)
+    return jnp.sum(jnp.where(models == lead, values, 0.0), axis=values.ndim - lead.ndim - 1)
 
 
 def as_batch_of_one(tree):
