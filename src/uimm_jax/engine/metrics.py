@@ -397,7 +397,7 @@ small (docs/montecarlo.md, "Innovation check")."""
 def _nis_mean(seen: np.ndarray) -> dict:
     """Mean, 99 % sampling band, count and verdict of observed per-channel NIS values."""
     mean = float(np.mean(seen))
-    half = 2.5758293035489004 * np.sqrt(2.0 / seen.size)
+    half = 2.5758293035489004 * float(np.sqrt(2.0 / seen.size))
     lo, hi = NIS_BAND
     verdict = "consistent"
     if not lo <= mean <= hi:

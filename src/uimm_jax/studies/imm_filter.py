@@ -26,9 +26,15 @@ from uimm_jax._checks import (
     check_shape,
     check_stochastic,
 )
+from uimm_jax.engine import metrics
 from uimm_jax.engine.dynamics import LinearCache, MatrixBankDynamics
 from uimm_jax.engine.imm import IMMParams, IMMState, imm_step
-from uimm_jax.engine.scan import as_batch_of_one, drop_batch_of_one
+from uimm_jax.engine.scan import (
+    as_batch_of_one,
+    drop_batch_of_one,
+    leading_nis,
+    leading_nis_channels,
+)
 from uimm_jax.errors import UIMMWarning
 from uimm_jax.xla_flags import warn_if_slow
 
@@ -96,6 +102,77 @@ class IMMResult(NamedTuple):
     model_mean: jax.Array | None = None
     nis: jax.Array | None = None
     nis_channels: jax.Array | None = None
+
+    def innovation_check(
+        self, measurements, *, dt: float | None = None, channel_names=None
+    ) -> dict:
+        """Whether the bank's noise fits the data: ``summary.json``'s ``innovation_check``.
+
+        Needs a result computed with ``outputs=`` naming ``"nis"`` and ``"log_mode_probs"``
+        (or ``"mode_probs"``), e.g. ``outputs=("mode_probs", "log_mode_probs", "mean",
+        "nis", "nis_channels")``.  At each step it takes the most probable model's NIS per
+        observed channel (of mean 1 when that model and its ``Q`` and ``R`` are the data's)
+        and returns :func:`uimm_jax.engine.metrics.innovation_check` of it: the mean, its
+        99 % band, the count and a ``verdict`` (``"consistent"``, ``"noise too small"``,
+        ``"noise too large"``).  With ``"nis_channels"`` in the result it adds
+        ``by_channel`` (which output's noise is off), and with ``dt`` ``unexplained`` (the
+        spells in which the bank stops explaining the data, windows of 0.1 s:
+        :data:`uimm_jax.engine.innovation.UNEXPLAINED`).
+
+        Args:
+            measurements: the ``(N, m)`` measurements the result was filtered from (NaN:
+                missing), for the number of observed channels at each step.
+            dt: the sample time in seconds, for ``unexplained``; ``None`` leaves it out.
+            channel_names: names of the ``m`` outputs for ``by_channel`` (default
+                ``"0"``, ``"1"``, ...).
+
+        Returns:
+            A dict (see :func:`uimm_jax.engine.metrics.innovation_check`).
+
+        Raises:
+            ValueError: when the result lacks ``nis`` or the mode probabilities, or
+                ``measurements`` does not match it.
+        """
+        lmp = self.log_mode_probs
+        if lmp is None and self.mode_probs is not None:
+            with np.errstate(divide="ignore"):
+                lmp = np.log(np.asarray(self.mode_probs))
+        if self.nis is None or lmp is None:
+            raise ValueError(
+                "innovation_check: this result has no 'nis' or no mode probabilities; run "
+                "imm_filter with outputs=(..., 'log_mode_probs', 'nis', 'nis_channels')"
+            )
+        nis = np.asarray(self.nis)
+        y = as_float_array(measurements, "measurements")
+        if y.ndim != 2 or y.shape[0] != nis.shape[0]:
+            raise ValueError(
+                f"measurements: expected ({nis.shape[0]}, m), the measurements the result "
+                f"was filtered from; got {y.shape}"
+            )
+        ch = self.nis_channels
+        ch = None if ch is None else np.transpose(np.asarray(ch), (2, 1, 0))  # (m, M, N)
+        if ch is not None and ch.shape[0] != y.shape[1]:
+            raise ValueError(f"measurements: {y.shape[1]} channels, the result has {ch.shape[0]}")
+        if channel_names is not None and len(channel_names) != y.shape[1]:
+            raise ValueError(f"channel_names: {len(channel_names)} names for {y.shape[1]} outputs")
+        # The engine's own pick of the leading model ((M, N) layout: the runs axis is time)
+        info = _LeadingTerms(np.asarray(lmp).T, nis.T, ch)
+        lead = np.asarray(leading_nis(info, y.T))
+        lead_ch = None if ch is None else np.asarray(leading_nis_channels(info, y.T)).T
+        out = metrics.innovation_check(lead, lead_ch, channel_names)
+        if dt is not None:
+            if not (np.isfinite(dt) and dt > 0):
+                raise ValueError(f"dt: expected a sample time > 0 in seconds, got {dt!r}")
+            out["unexplained"] = metrics.unexplained_spells(lead, y, float(dt))
+        return out
+
+
+class _LeadingTerms(NamedTuple):
+    """The fields :func:`leading_nis` reads from a step's info, over a whole result."""
+
+    log_mode_probs: Any  # (M, N)
+    nis: Any  # (M, N)
+    nis_channels: Any  # (m, M, N) or None
 
 
 def _warn_if_float32(dtype) -> None:
