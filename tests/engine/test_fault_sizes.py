@@ -11,7 +11,7 @@ from _engine_helpers import biased_sensors_dict
 from _robustness_helpers import short_dict, with_est_settings
 from uimm_jax.engine import _est_rules as rules
 from uimm_jax.engine.bank import fault_table, param_at_magnitude
-from uimm_jax.engine.truth import RAMP_STAIRS, fault_breakpoints, plan_phases
+from uimm_jax.engine.truth import RAMP_SEGMENTS, fault_breakpoints, plan_phases
 from uimm_jax.scenario.parse import parse_scenario
 from uimm_jax.scenario.sweep import sweep_spec
 
@@ -33,34 +33,83 @@ def test_fault_table_refuses_a_log_parameter_that_is_not_positive():
 
 
 def test_breakpoints_abrupt_ramp_and_end():
-    steps, lv = fault_breakpoints([10, -1], [2.0, 1.0])
-    assert steps.tolist() == [10] and lv.tolist() == [[2.0, 0.0]]
-    S, L = RAMP_STAIRS, 2 * RAMP_STAIRS  # a ramp of L steps
-    steps, lv = fault_breakpoints([100, -1], [2.0, 1.0], ramp=[L, 0])
-    assert len(steps) == S + 1 and steps[-1] == 100 + L
-    mid = (np.arange(S) + 0.5) / S * 2.0
-    np.testing.assert_allclose(lv[:-1, 0], mid)
-    assert lv[-1, 0] == 2.0
-    # every stair is within magnitude / (2 S) of the linear ramp over its steps
+    steps, lv, ends, present = fault_breakpoints([10, -1], [2.0, 1.0])
+    assert steps.tolist() == [10] and lv.tolist() == ends.tolist() == [[2.0, 0.0]]
+    assert present.tolist() == [[True, False]]
+    S, L = RAMP_SEGMENTS, 2 * RAMP_SEGMENTS + 1  # a ramp of L steps
+    steps, lv, ends, present = fault_breakpoints([100, -1], [2.0, 1.0], ramp=[L, 0])
+    assert len(steps) == S + 1 and steps[0] == 100 and steps[-1] == 100 + L
+    assert present[:, 0].all() and not present[:, 1].any()
+    # the knots lie on the ramp, each segment ends where the next begins
+    np.testing.assert_allclose(lv[:, 0], 2.0 * (steps - 100) / L, rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(ends[:-1, 0], lv[1:, 0])
+    assert lv[0, 0] == 0.0 and lv[-1, 0] == ends[-1, 0] == 2.0
+    # linear interpolation over each segment is the linear ramp at every step
     for k in range(100, 100 + L):
         e = np.searchsorted(steps, k, side="right") - 1
-        assert abs(lv[e, 0] - 2.0 * (k - 100) / L) <= 2.0 / (2 * S) + 1e-12
+        w = (k - steps[e]) / (steps[e + 1] - steps[e])
+        assert lv[e, 0] + w * (ends[e, 0] - lv[e, 0]) == pytest.approx(
+            2.0 * (k - 100) / L, abs=1e-14
+        )
     # an end inside the ramp cuts it and returns the fault to nominal
-    steps, lv = fault_breakpoints([100], [1.0], ramp=[64], end=[120])
-    assert steps[-1] == 120 and lv[-1, 0] == 0.0 and np.all(steps <= 120)
-    # a ramp shorter than the stair count: one stair per step
-    steps, _ = fault_breakpoints([5], [1.0], ramp=[3])
+    steps, lv, ends, present = fault_breakpoints([100], [1.0], ramp=[64], end=[120])
+    assert steps[-1] == 120 and lv[-1, 0] == 0.0 and not present[-1, 0] and np.all(steps <= 120)
+    assert ends[-2, 0] == pytest.approx(20 / 64)  # the ramp's value when it ends
+    # a ramp shorter than the segment count: one segment per step
+    steps, *_ = fault_breakpoints([5], [1.0], ramp=[3])
     assert steps.tolist() == [5, 6, 7, 8]
 
 
 def test_plan_phases_codes_follow_presence():
     table = fault_table(("p", "q"), np.array([1.0, 0.0]), {"a": {"p": 2.0}, "b": {"q": 1.0}})
-    th, codes, steps, present, levels = plan_phases(
+    th, codes, steps, present, levels, th_end = plan_phases(
         table, np.array([10, 20]), np.array([1.0, 0.5]), 6, end=np.array([30, -1])
     )
     assert steps.tolist()[:3] == [10, 20, 30]
     assert codes.tolist() == [0, 1, 3, 2, 2, 2]
     assert th[3, 0] == 1.0 and th[3, 1] == pytest.approx(0.5)
+    np.testing.assert_array_equal(th_end, th)  # abrupt events: nothing to interpolate
+    # a ramp: present (code) from its onset, at nominal there, its end towards the next knot
+    th, codes, steps, _, _, th_end = plan_phases(
+        table, np.array([10, -1]), np.array([1.0, 1.0]), 4, ramp=np.array([2, 0])
+    )
+    assert steps.tolist()[:2] == [10, 11] and codes.tolist()[:3] == [0, 1, 1]
+    assert th[1, 0] == 1.0 and th_end[1, 0] == pytest.approx(1.5) and th[2, 0] == th_end[1, 0]
+
+
+def test_a_slow_ramps_truth_follows_the_ramp_not_a_staircase():
+    """Air in oil x3 growing over 6 s (256 segments of 234 samples), its first 0.25 s: the
+    interpolated truth's states stay within 0.15 measurement sd of the truth with one
+    segment per 8 samples, while the same knots held as a staircase (no interpolation)
+    are more than 5 sd off."""
+    import jax
+
+    from uimm_jax.engine.scan import truth_scan
+    from uimm_jax.engine.truth import InputSignal, truth_plan
+    from uimm_jax.studies.run import setup_scenario
+
+    jax.config.update("jax_enable_x64", True)
+    setup = setup_scenario(parse_scenario(short_dict(sim=2, duration=0.3, events=(0.05, 0.1))))
+    sc, dyn = setup.scenario, setup.diagnoser.dyn
+    R = np.asarray(sc.measurement_noise)
+    states = {}
+    for name, segments in (("interpolated", RAMP_SEGMENTS), ("fine", 7500), ("stairs", 0)):
+        plan = truth_plan(
+            dyn, setup.table, np.array([-1, -1, 200]), np.array([1.0, 1.0, 3.0]),
+            np.zeros((3, 3)), R, ramp=np.array([0, 0, 60000]), segments=segments or RAMP_SEGMENTS,
+        )  # fmt: skip
+        assert plan.cache_end is not None
+        if not segments:
+            plan = plan._replace(cache_end=None)
+        ks = jax.numpy.arange(2700, dtype=jax.numpy.int32)
+        signal = InputSignal.from_spec(sc.input)
+        zero = np.zeros(2, np.uint32)
+        _, (_u, x, _y, _c) = truth_scan(dyn, sc.dt, 1, plan, signal, zero, jax.numpy.zeros(3), ks)
+        states[name] = np.asarray(x)
+    sd = np.sqrt(np.diag(R))
+    off = {k: np.max(np.abs(v - states["fine"]), axis=0) / sd for k, v in states.items()}
+    assert off["interpolated"].max() < 0.15, off  # measured 0.09 (p_h)
+    assert off["stairs"].max() > 5.0, off  # measured 19
 
 
 def test_events_take_ramp_and_end():

@@ -1,17 +1,19 @@
 """The simulated truth: input signals, fault phases, per-run keys and the truth step.
 
-The truth is a piecewise-constant-parameter plant: phase 0 is nominal and each fault
-event ``(step, fault, magnitude[, ramp, end])`` moves the parameters of that fault from
-nominal to their value at ``magnitude`` (:func:`uimm_jax.engine.bank.param_at_magnitude`:
+The truth is a piecewise-linear-parameter plant: phase 0 is nominal and each fault event
+``(step, fault, magnitude[, ramp, end])`` moves the parameters of that fault from nominal
+to their value at ``magnitude`` (:func:`uimm_jax.engine.bank.param_at_magnitude`:
 ``nominal + a (fault - nominal)``, or ``nominal (fault / nominal)^a`` for a positive
 parameter) from its step on; faults accumulate.  A *ramp* (an incipient fault) grows the
-magnitude linearly from 0 at the onset to ``magnitude`` over ``ramp`` steps as a
-staircase of :data:`RAMP_STAIRS` equal stairs, each at the ramp's value at the stair's
-midpoint (so the truth's magnitude is never more than ``magnitude / (2 RAMP_STAIRS)``
-from the linear ramp; docs/faults.md measures what this costs in the states); an *end*
-step returns the fault's parameters to nominal (an intermittent or repaired fault).  Each
-phase is discretised once, before the loop (:func:`truth_plan`); inside the loop the phase
-is selected by counting the phase boundaries already passed and gathering its matrices.
+magnitude linearly from 0 at the onset to ``magnitude`` over ``ramp`` steps, in
+:data:`RAMP_SEGMENTS` segments: the dynamics are discretised once at each segment's ends
+and interpolated linearly in time between them (``cache + w (cache_end - cache)``), so the
+truth follows the ramp to second order in a segment's magnitude change, whatever the
+ramp's length (a staircase, one discretisation per stair, put slow ramps' states up to 9
+measurement standard deviations off: docs/faults.md, "Staircase"); an *end* step returns
+the fault's parameters to nominal (an intermittent or repaired fault).  Each phase is
+discretised before the loop (:func:`truth_plan`); inside the loop the phase is selected
+by counting the phase boundaries already passed and gathering its matrices.
 
 Step k's noise is a pure function of the run's key and k
 (:func:`uimm_jax.engine.noise.standard_noise`: Philox4x32-10 counters, Box-Muller), so it
@@ -40,6 +42,7 @@ __all__ = [
     "NEVER",
     "InputSignal",
     "NonFiniteTruth",
+    "RAMP_SEGMENTS",
     "TruthPlan",
     "fault_breakpoints",
     "finite_phases",
@@ -59,8 +62,8 @@ INPUT_KINDS = ("sine", "square", "step", "constant")
 NEVER = np.iinfo(np.int32).max
 """Event step of a padding phase: never reached."""
 
-RAMP_STAIRS = 256
-"""Stairs of a ramp's staircase (fewer when the ramp is shorter than 256 samples)."""
+RAMP_SEGMENTS = 256
+"""Linear segments of a ramp (one per step when the ramp is shorter than 256 samples)."""
 
 _PREPARE_WIDTH = 16  # thetas per compiled ``prepare`` call (one compiled shape)
 
@@ -137,11 +140,14 @@ class TruthPlan(NamedTuple):
     """Everything the truth step needs (batch-minor: phases last).
 
     Attributes:
-        cache: dynamics cache of every phase, batch ``(*runs, K)``.
+        cache: dynamics cache of every phase at its first step, batch ``(*runs, K)``.
         event_steps: ``(*runs, K-1)`` int32 step at which phase i+1 begins.
         true_codes: ``(*runs, K)`` int32 fault-set code of each phase.
         Gq: ``(n, n)`` process noise factor, or ``(n, n, *runs)`` per run.
         Gr: ``(m, m)`` measurement noise factor, or ``(m, m, *runs)`` per run.
+        cache_end: the cache at each phase's end (the limit at the next event, before
+            any abrupt change there), towards which a ramp's phase interpolates; ``None``
+            when no phase of any run ramps (the truth then never interpolates).
     """
 
     cache: Any
@@ -149,50 +155,53 @@ class TruthPlan(NamedTuple):
     true_codes: jax.Array
     Gq: jax.Array
     Gr: jax.Array
+    cache_end: Any = None
 
 
-def fault_breakpoints(onset, magnitude, ramp=None, end=None, stairs: int = RAMP_STAIRS):
-    """The steps at which the truth's fault magnitudes change, and the magnitudes after.
+def fault_breakpoints(onset, magnitude, ramp=None, end=None, segments: int = RAMP_SEGMENTS):
+    """The steps at which the truth's fault magnitudes change course, and their values.
 
     Args:
         onset: ``(F,)`` onset step of each fault, negative if it does not occur.
         magnitude: ``(F,)`` final magnitude of each fault.
         ramp: optional ``(F,)`` ramp length in steps (0: abrupt).
         end: optional ``(F,)`` step at which the fault disappears (negative: never).
-        stairs: stairs per ramp (at most one per step).
+        segments: linear segments per ramp (at most one per step).
 
     Returns:
-        ``(steps (E,) int64 increasing, levels (E, F))``: from ``steps[e]`` on, fault ``j``
-        has magnitude ``levels[e, j]`` (0 = absent); before ``steps[0]`` every fault is
-        absent.
+        ``(steps (E,) int64 increasing, levels (E, F), ends (E, F), present (E, F))``: from
+        ``steps[e]`` to ``steps[e + 1]`` fault ``j``'s magnitude goes linearly from
+        ``levels[e, j]`` to ``ends[e, j]`` (its limit at ``steps[e + 1]``, before any
+        abrupt change there; after the last step it stays at ``levels[-1]``), and
+        ``present[e, j]`` says whether the fault is there (a ramp is, from its onset on,
+        at magnitude 0 on its first step); before ``steps[0]`` every fault is absent.
     """
     onset = np.asarray(onset, np.int64)
     F = onset.shape[0]
     magnitude = np.broadcast_to(np.asarray(magnitude, np.float64), (F,))
     ramp = np.zeros(F, np.int64) if ramp is None else np.asarray(ramp, np.int64)
     end = np.full(F, -1, np.int64) if end is None else np.asarray(end, np.int64)
-    changes: dict[int, dict[int, float]] = {}
+    knots: set[int] = set()
     for j in range(F):
         if onset[j] < 0:
             continue
         r = int(ramp[j])
-        s_count = max(1, min(int(stairs), r)) if r > 0 else 0
-        for i in range(s_count):  # stair i covers [onset + i r / S, onset + (i+1) r / S)
-            k = int(onset[j]) + (i * r) // s_count
-            changes.setdefault(k, {})[j] = magnitude[j] * (i + 0.5) / s_count
-        changes.setdefault(int(onset[j]) + r, {})[j] = magnitude[j]
+        count = max(1, min(int(segments), r)) if r > 0 else 0
+        ks = [int(onset[j]) + (i * r) // count for i in range(count)] + [int(onset[j]) + r]
         if end[j] >= 0:
-            for k in [k for k in changes if k >= end[j] and j in changes[k]]:
-                del changes[k][j]
-            changes.setdefault(int(end[j]), {})[j] = 0.0
-    steps = sorted(k for k, v in changes.items() if v)
-    levels = np.zeros((len(steps), F))
-    cur = np.zeros(F)
-    for e, k in enumerate(steps):
-        for j, v in changes[k].items():
-            cur[j] = v
-        levels[e] = cur
-    return np.array(steps, np.int64), levels
+            ks = [k for k in ks if k < end[j]] + [int(end[j])]
+        knots.update(ks)
+    steps = np.array(sorted(knots), np.int64)
+
+    def at(k, live_at):  # magnitudes at steps k, of the faults live at steps live_at
+        on = (onset >= 0) & (live_at[:, None] >= onset) & ~((end >= 0) & (live_at[:, None] >= end))
+        frac = np.clip((k[:, None] - onset) / np.maximum(ramp, 1), 0.0, 1.0)
+        return np.where(on, magnitude * np.where(ramp > 0, frac, 1.0), 0.0), on
+
+    levels, present = at(steps, steps)
+    ends = levels.copy()
+    ends[:-1] = at(steps[1:], steps[1:] - 1)[0]
+    return steps, levels, ends, present
 
 
 def plan_phases(
@@ -202,7 +211,7 @@ def plan_phases(
     num_phases: int,
     ramp=None,
     end=None,
-    stairs: int = RAMP_STAIRS,
+    segments: int = RAMP_SEGMENTS,
 ):
     """The phases of one run from the onset step, magnitude, ramp and end of each fault.
 
@@ -216,19 +225,23 @@ def plan_phases(
             :data:`NEVER`.
         ramp: optional ``(F,)`` ramp lengths in steps.
         end: optional ``(F,)`` end steps (negative: never).
-        stairs: stairs per ramp.
+        segments: linear segments per ramp.
 
     Returns:
         ``(thetas (K, P), codes (K,) int32, event_steps (K-1,) int32, present (K, F),
-        levels (K, F))``; the code of a phase holds the faults of non-zero magnitude.
+        levels (K, F), thetas_end (K, P))``: the parameters at each phase's first step
+        and at its end (:func:`fault_breakpoints`' ``ends``; equal when the phase does not
+        ramp); the code of a phase holds the faults present.
     """
     F = table.num_faults
-    steps, levels = fault_breakpoints(onset, magnitude, ramp, end, stairs)
+    steps, levels, ends, present = fault_breakpoints(onset, magnitude, ramp, end, segments)
     if len(steps) + 1 > num_phases:
         raise ValueError(f"{len(steps)} events need {len(steps) + 1} phases, got {num_phases}")
     levels = np.concatenate([np.zeros((1, F)), levels])
-    present = levels > 0
+    ends = np.concatenate([np.zeros((1, F)), ends])
+    present = np.concatenate([np.zeros((1, F), bool), present])
     thetas = [table.theta_numpy(s, lv) for s, lv in zip(present, levels, strict=True)]
+    thetas_end = [table.theta_numpy(s, lv) for s, lv in zip(present, ends, strict=True)]
     codes = [int(np.sum(s * (1 << np.arange(F)))) for s in present]
     pad = num_phases - len(thetas)
     return (
@@ -237,6 +250,7 @@ def plan_phases(
         np.concatenate([steps, np.full(pad, NEVER)]).astype(np.int32),
         np.concatenate([present, np.repeat(present[-1:], pad, 0)]),
         np.concatenate([levels, np.repeat(levels[-1:], pad, 0)]),
+        np.array(thetas_end + [thetas[-1]] * pad),
     )
 
 
@@ -305,6 +319,7 @@ def truth_plan(
     dtype=None,
     ramp=None,
     end=None,
+    segments: int = RAMP_SEGMENTS,
 ) -> TruthPlan:
     """The truth plan of one run or a batch of runs.
 
@@ -325,6 +340,7 @@ def truth_plan(
         dtype: float dtype (default: JAX's default float).
         ramp: optional ``(*runs, F)`` ramp length of each fault in steps (0: abrupt).
         end: optional ``(*runs, F)`` step at which each fault disappears (negative: never).
+        segments: linear segments per ramp (:data:`RAMP_SEGMENTS`).
 
     Returns:
         The :class:`TruthPlan`.
@@ -343,33 +359,40 @@ def truth_plan(
     fin = np.full(onset.shape, -1, np.int64) if end is None else end
     fin = np.broadcast_to(np.asarray(fin, np.int64), onset.shape).reshape(on.shape)
     needed = [
-        len(fault_breakpoints(o, a, r, e)[0]) for o, a, r, e in zip(on, mag, rmp, fin, strict=True)
+        len(fault_breakpoints(o, a, r, e, segments)[0])
+        for o, a, r, e in zip(on, mag, rmp, fin, strict=True)
     ]
     K = num_phases or 1 + max(needed, default=0)
-    th, codes, steps, sets, _ = zip(
-        *(plan_phases(table, o, a, K, r, e) for o, a, r, e in zip(on, mag, rmp, fin, strict=True)),
+    th, codes, steps, sets, _, th_end = zip(
+        *(
+            plan_phases(table, o, a, K, r, e, segments)
+            for o, a, r, e in zip(on, mag, rmp, fin, strict=True)
+        ),
         strict=True,
     )
-    th = np.array(th)  # (R, K, P)
-    uniq, idx = np.unique(th.reshape(-1, th.shape[-1]), axis=0, return_inverse=True)
-    idx = idx.reshape(runs + (K,))
+    th, th_end = np.array(th), np.array(th_end)  # (R, K, P) each
+    ramps = not np.array_equal(th, th_end)
+    both = np.concatenate([th, th_end]) if ramps else th
+    uniq, idx = np.unique(both.reshape(-1, th.shape[-1]), axis=0, return_inverse=True)
+    idx = idx.reshape((-1,) + runs + (K,))
     caches = phase_caches(dyn, uniq, dtype)
     ok = finite_phases(caches, len(uniq))
     if not ok.all():
         first = int(np.argmin(ok[idx.reshape(-1)]))  # first bad phase, in run order
-        r, k = divmod(first, K)
-        raise NonFiniteTruth(sets[r][k], mag[r], th[r, k])
+        r, k = divmod(first % (len(on) * K), K)
+        raise NonFiniteTruth(sets[r][k], mag[r], (th if first < len(on) * K else th_end)[r, k])
     Gq = noise_factor(process_noise)
     Gr = noise_factor(measurement_noise)
     if noise_scale is not None:
         s = np.asarray(noise_scale, np.float64)
         Gq, Gr = Gq[..., None] * s, Gr[..., None] * s
     return TruthPlan(
-        cache=jax.tree.map(lambda a: jnp.asarray(a[..., idx]), caches),
+        cache=jax.tree.map(lambda a: jnp.asarray(a[..., idx[0]]), caches),
         event_steps=jnp.asarray(np.array(steps, np.int32).reshape(runs + (K - 1,))),
         true_codes=jnp.asarray(np.array(codes, np.int32).reshape(runs + (K,))),
         Gq=jnp.asarray(Gq, dtype),
         Gr=jnp.asarray(Gr, dtype),
+        cache_end=jax.tree.map(lambda a: jnp.asarray(a[..., idx[1]]), caches) if ramps else None,
     )
 
 
@@ -382,6 +405,16 @@ def _select(leaf: jax.Array, ph: jax.Array) -> jax.Array:
     """``leaf[..., *runs, ph]``: one phase per run (a gather: O(1) in the phase count)."""
     idx = jnp.broadcast_to(ph[..., None], leaf.shape[:-1] + (1,))
     return jnp.take_along_axis(leaf, idx, axis=-1)
+
+
+def _phase_fraction(event_steps: jax.Array, ph: jax.Array, k, dtype) -> jax.Array:
+    """``(*runs, 1)``: how far step ``k`` is through its phase ``ph``, in ``[0, 1)``."""
+    last = event_steps.shape[-1]  # phases K = last + 1; the last one never ends
+    start = jnp.take_along_axis(event_steps, jnp.maximum(ph - 1, 0)[..., None], axis=-1)
+    stop = jnp.take_along_axis(event_steps, jnp.minimum(ph, last - 1)[..., None], axis=-1)
+    start = jnp.where(ph[..., None] > 0, start, 0).astype(dtype)
+    stop = jnp.where(ph[..., None] < last, stop, NEVER).astype(dtype)
+    return (jnp.asarray(k, dtype) - start) / (stop - start)
 
 
 def truth_step(
@@ -403,6 +436,9 @@ def truth_step(
     n = x.shape[0]
     ph = phase_index(plan, k)
     cache = jax.tree.map(lambda leaf: _select(leaf, ph), plan.cache)
+    if plan.cache_end is not None:  # a ramp's phase: linear in time towards its end
+        w = _phase_fraction(plan.event_steps, ph, k, x.dtype)
+        cache = jax.tree.map(lambda c, leaf: c + w * (_select(leaf, ph) - c), cache, plan.cache_end)
     xn, _ = dyn.predict(cache, x[..., None], u[..., None])
     yp, _ = dyn.observe(cache, xn)
     x_next = xn[..., 0] + bk.mv(plan.Gq, z[:n])

@@ -68,7 +68,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from uimm_jax.engine import metrics
-from uimm_jax.engine.truth import RAMP_STAIRS, run_keys
+from uimm_jax.engine.truth import RAMP_SEGMENTS, run_keys
 from uimm_jax.engine.uimm_est import UIMMEstDiagnoser
 from uimm_jax.errors import UIMMWarning
 from uimm_jax.scenario.sweep import FAULT_FREE, CaseSpec, SweepSpec, sweep_spec
@@ -143,7 +143,7 @@ def _max_phases(spec: SweepSpec) -> int:
         k = 0
         for ev in case.events:
             ramp = max([ev.ramp] + ramps) if ramps or ev.ramp else 0.0
-            k += (RAMP_STAIRS + 1 if ramp > 0 else 1) + (ev.duration is not None)
+            k += (RAMP_SEGMENTS + 1 if ramp > 0 else 1) + (ev.duration is not None)
         worst = max(worst, k)
     return max(2, 1 + worst)  # at least one padding phase: one compiled shape
 

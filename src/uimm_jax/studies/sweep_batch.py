@@ -128,6 +128,7 @@ def _specs(carry: SimCarry, plan: TruthPlan, keys):
         true_codes=t(plan.true_codes, 1),
         Gq=t(plan.Gq, 0),
         Gr=t(plan.Gr, 0),
+        cache_end=None if plan.cache_end is None else t(plan.cache_end, 1),
     )
     return carry_spec, plan_spec, t(keys, 1)
 

@@ -53,14 +53,20 @@ def scenario_ramps(scenario, names):
 def true_magnitudes(scenario, names, num_steps: int, magnitude_scale: float = 1.0) -> np.ndarray:
     """``(N, F)`` the truth's magnitude of each fault at each step (0: absent).
 
-    The same breakpoints as the truth plan
-    (:func:`~uimm_jax.engine.truth.fault_breakpoints`: ramp staircases, ends).
+    The same breakpoints as the truth plan (:func:`~uimm_jax.engine.truth.fault_breakpoints`:
+    ramps linear between them, ends), and the same interpolation in time.
     """
     onset, magnitude, _ = scenario_onsets(scenario, names, magnitude_scale)
     ramp, end = scenario_ramps(scenario, names)
-    steps, levels = fault_breakpoints(onset, magnitude, ramp, end)
-    idx = np.searchsorted(steps, np.arange(num_steps), side="right")
-    return np.concatenate([np.zeros((1, len(list(names)))), levels])[idx]
+    steps, levels, ends, _ = fault_breakpoints(onset, magnitude, ramp, end)
+    k = np.arange(num_steps)
+    e = np.searchsorted(steps, k, side="right") - 1  # -1: before every event
+    zero = np.zeros((1, len(list(names))))
+    start = np.concatenate([[0], steps])[e + 1]
+    stop = np.concatenate([steps, [np.iinfo(np.int64).max]])[e + 1]
+    w = ((k - start) / (stop - start))[:, None]
+    lo, hi = np.concatenate([zero, levels])[e + 1], np.concatenate([zero, ends])[e + 1]
+    return lo + w * (hi - lo)
 
 
 def scenario_onsets(scenario, names, magnitude_scale: float = 1.0):
