@@ -77,6 +77,23 @@ def test_plan_phases_codes_follow_presence():
     assert th[1, 0] == 1.0 and th_end[1, 0] == pytest.approx(1.5) and th[2, 0] == th_end[1, 0]
 
 
+@pytest.mark.parametrize("n", [5, 16, 17, 514, 1000])
+def test_phase_index_counts_the_events_started_whatever_their_number(n):
+    """The truth's phase lookup (a count up to 16 event steps, a binary search above)
+    equals the count of event steps ``<= k``, padding phases (NEVER) included."""
+    import jax.numpy as jnp
+
+    from uimm_jax.engine.truth import NEVER, TruthPlan, phase_index
+
+    rng = np.random.default_rng(n)
+    es = np.sort(rng.integers(0, 5000, (8, n)), axis=1).astype(np.int32)
+    es[:, -min(3, n - 1) :] = NEVER
+    plan = TruthPlan(None, jnp.asarray(es), None, None, None)
+    for k in (0, 1, 100, 2500, 4999, 6000, int(es.min()), int(es[0, 0]), int(es[-1, n // 2])):
+        got = np.asarray(phase_index(plan, jnp.int32(k)))
+        np.testing.assert_array_equal(got, np.sum(k >= es, axis=1), err_msg=f"k={k}")
+
+
 def test_a_slow_ramps_truth_follows_the_ramp_not_a_staircase():
     """Air in oil x3 growing over 6 s (256 segments of 234 samples), its first 0.25 s: the
     interpolated truth's states stay within 0.15 measurement sd of the truth with one

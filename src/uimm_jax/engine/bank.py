@@ -65,16 +65,22 @@ class FaultTable(NamedTuple):
         return len(self.names)
 
     def theta_numpy(self, fault_set: Sequence[bool], magnitudes=None) -> np.ndarray:
-        """Parameters of one fault set on the host, with optional per-fault magnitudes.
+        """Parameters of fault sets on the host, with optional per-fault magnitudes.
 
-        A magnitude ``a`` places the parameter at :func:`param_at_magnitude`.
+        ``fault_set`` is ``(F,)`` bool (one set) or ``(K, F)`` (a batch, e.g. the truth's
+        phases), ``magnitudes`` the same shape (default: every magnitude 1); returns
+        ``(P,)`` or ``(K, P)``.  A magnitude ``a`` places the parameter at
+        :func:`param_at_magnitude`.
         """
-        th = self.nominal.copy()
-        for j, on in enumerate(fault_set):
-            if on:
-                a = 1.0 if magnitudes is None else float(magnitudes[j])
-                moved = param_at_magnitude(self.nominal, self.values[j], a, self.log_mask, np)
-                th = np.where(self.mask[j], moved, th)
+        sets = np.asarray(fault_set, bool)
+        mags = np.ones(sets.shape) if magnitudes is None else np.asarray(magnitudes, np.float64)
+        mags = np.broadcast_to(mags, sets.shape)
+        th = np.broadcast_to(self.nominal, sets.shape[:-1] + self.nominal.shape)
+        for j in range(sets.shape[-1]):
+            moved = param_at_magnitude(
+                self.nominal, self.values[j], mags[..., j, None], self.log_mask, np
+            )
+            th = np.where(sets[..., j, None] & self.mask[j], moved, th)
         return th
 
     @property

