@@ -75,7 +75,7 @@ class FaultTable(NamedTuple):
         sets = np.asarray(fault_set, bool)
         mags = np.ones(sets.shape) if magnitudes is None else np.asarray(magnitudes, np.float64)
         mags = np.broadcast_to(mags, sets.shape)
-        th = np.broadcast_to(self.nominal, sets.shape[:-1] + self.nominal.shape)
+        th = np.array(np.broadcast_to(self.nominal, sets.shape[:-1] + self.nominal.shape))
         for j in range(sets.shape[-1]):
             moved = param_at_magnitude(
                 self.nominal, self.values[j], mags[..., j, None], self.log_mask, np
