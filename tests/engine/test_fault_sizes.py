@@ -129,6 +129,25 @@ def test_a_slow_ramps_truth_follows_the_ramp_not_a_staircase():
     assert off["stairs"].max() > 5.0, off  # measured 19
 
 
+def test_true_magnitudes_are_the_linear_ramps_and_ends_at_every_step():
+    """The figures' and exports' truth (``studies.truth.true_magnitudes``) against the
+    ramps written out by hand: linear from the onset, constant after, 0 after an end."""
+    from uimm_jax.studies.truth import true_magnitudes
+
+    d = short_dict(sim=2, duration=0.5, events=(0.1, 0.2))
+    d["events"][0].update(magnitude=2.0, ramp=0.15)  # valve wear, 1500 samples
+    d["events"][1].update(magnitude=0.5, ramp=0.01, end=0.4)  # air in oil, 100 samples
+    sc = parse_scenario(d)
+    names = [n for n in sc.faults]
+    got = true_magnitudes(sc, names, 5000)
+    k = np.arange(5000)
+    vw = 2.0 * np.clip((k - 1000) / 1500, 0, 1) * (k >= 1000)
+    aio = 0.5 * np.clip((k - 2000) / 100, 0, 1) * ((k >= 2000) & (k < 4000))
+    np.testing.assert_allclose(got[:, names.index("valve_wear")], vw, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(got[:, names.index("air_in_oil")], aio, rtol=0, atol=1e-14)
+    assert not got[:, names.index("leakage")].any()
+
+
 def test_events_take_ramp_and_end():
     d = short_dict(duration=1.0, events=(0.2, 0.4))
     d["events"][0]["ramp"] = 0.1
