@@ -45,6 +45,7 @@ __all__ = [
     "RAMP_SEGMENTS",
     "TruthPlan",
     "fault_breakpoints",
+    "fault_levels",
     "finite_phases",
     "input_value",
     "noise_factor",
@@ -158,6 +159,39 @@ class TruthPlan(NamedTuple):
     cache_end: Any = None
 
 
+def _fault_arrays(onset, magnitude, ramp, end):
+    """The events as arrays ``(F,)``: onset, magnitude, ramp (0: abrupt), end (-1: never)."""
+    onset = np.asarray(onset, np.int64)
+    F = onset.shape[0]
+    magnitude = np.broadcast_to(np.asarray(magnitude, np.float64), (F,))
+    ramp = np.zeros(F, np.int64) if ramp is None else np.asarray(ramp, np.int64)
+    end = np.full(F, -1, np.int64) if end is None else np.asarray(end, np.int64)
+    return onset, magnitude, ramp, end
+
+
+def fault_levels(onset, magnitude, ramp, end, k, live_at=None):
+    """The truth's fault magnitudes at steps ``k``: linear over a ramp, 0 after an end.
+
+    Args:
+        onset: ``(F,)`` onset step of each fault, negative if it does not occur.
+        magnitude: ``(F,)`` final magnitude of each fault.
+        ramp: optional ``(F,)`` ramp length in steps (0: abrupt).
+        end: optional ``(F,)`` step at which the fault disappears (negative: never).
+        k: ``(S,)`` steps.
+        live_at: ``(S,)`` steps at which presence is judged (default ``k``; ``k - 1``
+            gives a ramp's limit at ``k`` before an abrupt change there).
+
+    Returns:
+        ``(levels (S, F), present (S, F))``.
+    """
+    onset, magnitude, ramp, end = _fault_arrays(onset, magnitude, ramp, end)
+    k = np.asarray(k, np.int64)
+    at = (k if live_at is None else np.asarray(live_at, np.int64))[:, None]
+    on = (onset >= 0) & (at >= onset) & ~((end >= 0) & (at >= end))
+    frac = np.clip((k[:, None] - onset) / np.maximum(ramp, 1), 0.0, 1.0)
+    return np.where(on, magnitude * np.where(ramp > 0, frac, 1.0), 0.0), on
+
+
 def fault_breakpoints(onset, magnitude, ramp=None, end=None, segments: int = RAMP_SEGMENTS):
     """The steps at which the truth's fault magnitudes change course, and their values.
 
@@ -176,11 +210,8 @@ def fault_breakpoints(onset, magnitude, ramp=None, end=None, segments: int = RAM
         ``present[e, j]`` says whether the fault is there (a ramp is, from its onset on,
         at magnitude 0 on its first step); before ``steps[0]`` every fault is absent.
     """
-    onset = np.asarray(onset, np.int64)
+    onset, magnitude, ramp, end = _fault_arrays(onset, magnitude, ramp, end)
     F = onset.shape[0]
-    magnitude = np.broadcast_to(np.asarray(magnitude, np.float64), (F,))
-    ramp = np.zeros(F, np.int64) if ramp is None else np.asarray(ramp, np.int64)
-    end = np.full(F, -1, np.int64) if end is None else np.asarray(end, np.int64)
     knots: set[int] = set()
     for j in range(F):
         if onset[j] < 0:
@@ -192,15 +223,9 @@ def fault_breakpoints(onset, magnitude, ramp=None, end=None, segments: int = RAM
             ks = [k for k in ks if k < end[j]] + [int(end[j])]
         knots.update(ks)
     steps = np.array(sorted(knots), np.int64)
-
-    def at(k, live_at):  # magnitudes at steps k, of the faults live at steps live_at
-        on = (onset >= 0) & (live_at[:, None] >= onset) & ~((end >= 0) & (live_at[:, None] >= end))
-        frac = np.clip((k[:, None] - onset) / np.maximum(ramp, 1), 0.0, 1.0)
-        return np.where(on, magnitude * np.where(ramp > 0, frac, 1.0), 0.0), on
-
-    levels, present = at(steps, steps)
+    levels, present = fault_levels(onset, magnitude, ramp, end, steps)
     ends = levels.copy()
-    ends[:-1] = at(steps[1:], steps[1:] - 1)[0]
+    ends[:-1] = fault_levels(onset, magnitude, ramp, end, steps[1:], steps[1:] - 1)[0]
     return steps, levels, ends, present
 
 

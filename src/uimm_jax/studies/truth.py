@@ -18,7 +18,7 @@ from uimm_jax.engine.truth import (
     InputSignal,
     NonFiniteTruth,
     TruthPlan,
-    fault_breakpoints,
+    fault_levels,
     input_value,
     truth_plan,
 )
@@ -53,20 +53,12 @@ def scenario_ramps(scenario, names):
 def true_magnitudes(scenario, names, num_steps: int, magnitude_scale: float = 1.0) -> np.ndarray:
     """``(N, F)`` the truth's magnitude of each fault at each step (0: absent).
 
-    The same breakpoints as the truth plan (:func:`~uimm_jax.engine.truth.fault_breakpoints`:
-    ramps linear between them, ends), and the same interpolation in time.
+    The truth plan's own rule (:func:`~uimm_jax.engine.truth.fault_levels`: linear over a
+    ramp, 0 after an end), at every step.
     """
     onset, magnitude, _ = scenario_onsets(scenario, names, magnitude_scale)
     ramp, end = scenario_ramps(scenario, names)
-    steps, levels, ends, _ = fault_breakpoints(onset, magnitude, ramp, end)
-    k = np.arange(num_steps)
-    e = np.searchsorted(steps, k, side="right") - 1  # -1: before every event
-    zero = np.zeros((1, len(list(names))))
-    start = np.concatenate([[0], steps])[e + 1]
-    stop = np.concatenate([steps, [np.iinfo(np.int64).max]])[e + 1]
-    w = ((k - start) / (stop - start))[:, None]
-    lo, hi = np.concatenate([zero, levels])[e + 1], np.concatenate([zero, ends])[e + 1]
-    return lo + w * (hi - lo)
+    return fault_levels(onset, magnitude, ramp, end, np.arange(num_steps))[0]
 
 
 def scenario_onsets(scenario, names, magnitude_scale: float = 1.0):
