@@ -514,7 +514,10 @@ def test_sweep_reports_sizes_and_retractions_of_uimm_est():
         "events": [{"fault": "air_in_oil", "time": [0.1, 0.15], "duration": [0.1, 0.2]}],
     }
     steady = {"name": "steady", "events": [{"fault": "air_in_oil", "time": 0.1}]}
-    res = run_sweep(sc, runs=16, methods=["uimm-est"], magnitudes=[2.0], cases=[case, steady])
+    grow = {"fault": "air_in_oil", "time": 0.1, "ramp": 0.1, "growth": "exponential"}
+    growing = {"name": "growing", "events": [grow]}
+    cases = [case, steady, growing]
+    res = run_sweep(sc, runs=16, methods=["uimm-est"], magnitudes=[2.0], cases=cases)
     est = res.estimates
     by_case = {c.case: c.index for c in res.cells}
     i = by_case["intermittent"]
@@ -528,6 +531,15 @@ def test_sweep_reports_sizes_and_retractions_of_uimm_est():
     assert st["magnitude_mare"]["air_in_oil"] < 0.05
     assert 0.0 <= st["magnitude_coverage"]["air_in_oil"] <= 1.0
     assert res.summaries[by_case["fault-free"]]["false_declarations_all"] == 0
+    # a growth still under way at the run's end: scored against the truth's level there
+    g = by_case["growing"]
+    level = 2.0 * (1 - np.exp(-3999 / 1000)) / (1 - 1e-6)  # the last step, 4 tau in
+    np.testing.assert_allclose(res.true_magnitude[g][:, 2], level, rtol=1e-12)
+    np.testing.assert_array_equal(res.true_magnitude[by_case["steady"]][:, 2], 2.0)
+    err = np.abs(est["magnitude"][g][:, 2] / level - 1)
+    kept = (res.decl_step[g][:, 2] >= 0) & (est["retract_step"][g][:, 2] < 0)
+    assert res.summaries[g]["magnitude_mare"]["air_in_oil"] == pytest.approx(np.median(err[kept]))
+    assert kept.mean() >= 0.9  # sized in docs/faults.md, "Exponential growth"
     # runs.csv carries each run's last retraction and end-of-run size (exports.run_rows)
     from uimm_jax.studies.exports import run_rows
 

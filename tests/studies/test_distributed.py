@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 from test_montecarlo import small_scenario
 
-from uimm_jax.scenario.write import dump_scenario
+from uimm_jax.scenario.parse import parse_scenario
+from uimm_jax.scenario.write import dump_scenario, scenario_to_dict
 from uimm_jax.studies import distributed
 from uimm_jax.studies import sweep as mc
 
@@ -195,6 +196,11 @@ def test_cli_duration_scales_events_and_cases():
     ]  # fmt: skip
     assert [[ev["time"] for ev in case["events"]] for case in half.sweep["cases"]] == want
     assert with_duration(sc, 0.2, "--duration") is sc
+    # an end is an event time too: the fault ends at the same place in the shorter run
+    d = scenario_to_dict(sc)
+    d["events"][0]["end"] = 0.15
+    half = with_duration(parse_scenario(d), 0.1, "--duration")
+    assert (half.events[0].time, half.events[0].end) == (sc.events[0].time / 2, 0.075)
 
 
 def test_cli_duration_must_be_positive(tmp_path, capsys):

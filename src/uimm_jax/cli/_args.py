@@ -21,8 +21,9 @@ def _scaled(time, factor: float):
 def with_duration(scenario, duration, flag: str):
     """The scenario lasting ``duration`` s, its event times scaled by the same factor.
 
-    The onsets of the ``[sweep]`` cases (times and windows) are scaled too, so that every
-    event keeps its place in the run.  Refuses a duration that is not a finite number > 0
+    An event's ``time`` and ``end`` are scaled, and the onsets of the ``[sweep]`` cases
+    (times and windows) too, so that every event keeps its place in the run; lengths
+    (``ramp``, a case's ``duration``) are kept.  Refuses a duration that is not a finite number > 0
     or not a whole number of samples, naming ``flag``.
     """
     from uimm_jax._checks import check_positive_finite
@@ -37,7 +38,9 @@ def with_duration(scenario, duration, flag: str):
     d = scenario_to_dict(scenario)
     d["duration"] = duration
     for ev in d.get("events", []):
-        ev["time"] = _scaled(ev["time"], factor)
+        for key in ("time", "end"):
+            if key in ev:
+                ev[key] = _scaled(ev[key], factor)
     sweep = copy.deepcopy(d.get("sweep")) or {}
     for case in sweep.get("cases", []) if isinstance(sweep.get("cases"), list) else []:
         for ev in case.get("events", []) if isinstance(case, dict) else []:

@@ -10,7 +10,14 @@ magnitude linearly from 0 at the onset to ``magnitude`` over ``ramp`` steps, in
 and interpolated linearly in time between them (``cache + w (cache_end - cache)``), so the
 truth follows the ramp to second order in a segment's magnitude change, whatever the
 ramp's length (a staircase, one discretisation per stair, put slow ramps' states up to 9
-measurement standard deviations off: docs/faults.md, "Staircase"); an *end* step returns
+measurement standard deviations off: docs/faults.md, "Staircase").  With the
+``"exponential"`` growth (:data:`GROWTH_KINDS`) the ramp is instead the time constant
+``tau`` of ``magnitude (1 - exp(-(k - onset) / tau))``, the incipient-fault time profile
+of the fault-diagnosis literature (Polycarpou and Trunov): 63 % of the magnitude after
+``tau``, 95 % after ``3 tau``; it is scaled by ``1 / (1 - EXP_TAIL)`` and held at the
+magnitude from ``tau ln(1 / EXP_TAIL)`` on, and its segments' knots are spaced so that
+interpolating between them errs by about ``magnitude / (2 RAMP_SEGMENTS^2)`` everywhere
+(:func:`fault_breakpoints`).  An *end* step returns
 the fault's parameters to nominal (an intermittent or repaired fault).  Each phase is
 discretised before the loop (:func:`truth_plan`); inside the loop the phase is selected
 by counting the phase boundaries already passed and gathering its matrices.
@@ -47,6 +54,7 @@ __all__ = [
     "fault_breakpoints",
     "fault_levels",
     "finite_phases",
+    "GROWTH_KINDS",
     "input_value",
     "noise_factor",
     "phase_caches",
@@ -65,6 +73,12 @@ NEVER = np.iinfo(np.int32).max
 
 RAMP_SEGMENTS = 256
 """Linear segments of a ramp (one per step when the ramp is shorter than 256 samples)."""
+
+GROWTH_KINDS = ("linear", "exponential")
+"""How a ramp grows; a kind's integer code is its index (the ``growth`` arrays)."""
+
+EXP_TAIL = 1e-6
+"""Relative shortfall at which an exponential growth is complete (``tau ln(1e6)``, 13.8 tau)."""
 
 _PREPARE_WIDTH = 16  # thetas per compiled ``prepare`` call (one compiled shape)
 
@@ -159,48 +173,81 @@ class TruthPlan(NamedTuple):
     cache_end: Any = None
 
 
-def _fault_arrays(onset, magnitude, ramp, end):
-    """The events as arrays ``(F,)``: onset, magnitude, ramp (0: abrupt), end (-1: never)."""
+def _fault_arrays(onset, magnitude, ramp, end, growth):
+    """The events as arrays ``(F,)``: onset, magnitude, ramp, end, growth code."""
     onset = np.asarray(onset, np.int64)
     F = onset.shape[0]
     magnitude = np.broadcast_to(np.asarray(magnitude, np.float64), (F,))
     ramp = np.zeros(F, np.int64) if ramp is None else np.asarray(ramp, np.int64)
     end = np.full(F, -1, np.int64) if end is None else np.asarray(end, np.int64)
-    return onset, magnitude, ramp, end
+    growth = np.zeros(F, np.int64) if growth is None else np.asarray(growth, np.int64)
+    return onset, magnitude, ramp, end, growth
 
 
-def fault_levels(onset, magnitude, ramp, end, k, live_at=None):
-    """The truth's fault magnitudes at steps ``k``: linear over a ramp, 0 after an end.
+def _exp_length(tau):
+    """Steps after which an exponential growth of time constant ``tau`` steps is complete."""
+    return np.ceil(np.asarray(tau, np.float64) * math.log(1.0 / EXP_TAIL)).astype(np.int64)
+
+
+def fault_levels(onset, magnitude, ramp, end, k, live_at=None, growth=None):
+    """The truth's fault magnitudes at steps ``k``: along a ramp, 0 after an end.
 
     Args:
         onset: ``(F,)`` onset step of each fault, negative if it does not occur.
         magnitude: ``(F,)`` final magnitude of each fault.
-        ramp: optional ``(F,)`` ramp length in steps (0: abrupt).
+        ramp: optional ``(F,)`` ramp length in steps (0: abrupt); the time constant of an
+            exponential growth.
         end: optional ``(F,)`` step at which the fault disappears (negative: never).
         k: ``(S,)`` steps.
         live_at: ``(S,)`` steps at which presence is judged (default ``k``; ``k - 1``
             gives a ramp's limit at ``k`` before an abrupt change there).
+        growth: optional ``(F,)`` growth codes (:data:`GROWTH_KINDS`; default linear).
 
     Returns:
         ``(levels (S, F), present (S, F))``.
     """
-    onset, magnitude, ramp, end = _fault_arrays(onset, magnitude, ramp, end)
+    onset, magnitude, ramp, end, growth = _fault_arrays(onset, magnitude, ramp, end, growth)
     k = np.asarray(k, np.int64)
     at = (k if live_at is None else np.asarray(live_at, np.int64))[:, None]
     on = (onset >= 0) & (at >= onset) & ~((end >= 0) & (at >= end))
-    frac = np.clip((k[:, None] - onset) / np.maximum(ramp, 1), 0.0, 1.0)
+    t = np.maximum(k[:, None] - onset, 0) / np.maximum(ramp, 1)
+    exp = -np.expm1(-t) / (1.0 - EXP_TAIL)
+    frac = np.clip(np.where(growth == 1, exp, t), 0.0, 1.0)
     return np.where(on, magnitude * np.where(ramp > 0, frac, 1.0), 0.0), on
 
 
-def fault_breakpoints(onset, magnitude, ramp=None, end=None, segments: int = RAMP_SEGMENTS):
+def _ramp_knots(onset: int, r: int, growth: int, segments: int) -> list[int]:
+    """The steps that cut one ramp of ``r`` steps (``tau``) into segments.
+
+    Evenly for a linear growth; for an exponential one at ``-2 tau ln(1 - s)`` for ``s``
+    even in ``[0, 1 - sqrt(EXP_TAIL)]``, where the curve's second derivative times the
+    squared spacing is the same in every segment.
+    """
+    if growth == 0:
+        count = max(1, min(int(segments), r))
+        return [onset + (i * r) // count for i in range(count)] + [onset + r]
+    length = int(_exp_length(r))
+    if length <= segments:  # a knot at every step
+        return list(range(onset, onset + length + 1))
+    count = int(segments)
+    top = 1.0 - math.sqrt(EXP_TAIL)
+    ks = {onset + min(length, round(-2.0 * r * math.log1p(-top * i / count))) for i in range(count)}
+    return sorted(ks | {onset + length})
+
+
+def fault_breakpoints(
+    onset, magnitude, ramp=None, end=None, segments: int = RAMP_SEGMENTS, growth=None
+):
     """The steps at which the truth's fault magnitudes change course, and their values.
 
     Args:
         onset: ``(F,)`` onset step of each fault, negative if it does not occur.
         magnitude: ``(F,)`` final magnitude of each fault.
-        ramp: optional ``(F,)`` ramp length in steps (0: abrupt).
+        ramp: optional ``(F,)`` ramp length in steps (0: abrupt; an exponential growth's
+            time constant).
         end: optional ``(F,)`` step at which the fault disappears (negative: never).
         segments: linear segments per ramp (at most one per step).
+        growth: optional ``(F,)`` growth codes (:data:`GROWTH_KINDS`; default linear).
 
     Returns:
         ``(steps (E,) int64 increasing, levels (E, F), ends (E, F), present (E, F))``: from
@@ -210,22 +257,22 @@ def fault_breakpoints(onset, magnitude, ramp=None, end=None, segments: int = RAM
         ``present[e, j]`` says whether the fault is there (a ramp is, from its onset on,
         at magnitude 0 on its first step); before ``steps[0]`` every fault is absent.
     """
-    onset, magnitude, ramp, end = _fault_arrays(onset, magnitude, ramp, end)
+    onset, magnitude, ramp, end, growth = _fault_arrays(onset, magnitude, ramp, end, growth)
     F = onset.shape[0]
     knots: set[int] = set()
     for j in range(F):
         if onset[j] < 0:
             continue
         r = int(ramp[j])
-        count = max(1, min(int(segments), r)) if r > 0 else 0
-        ks = [int(onset[j]) + (i * r) // count for i in range(count)] + [int(onset[j]) + r]
+        ks = _ramp_knots(int(onset[j]), r, int(growth[j]), segments) if r > 0 else [int(onset[j])]
         if end[j] >= 0:
             ks = [k for k in ks if k < end[j]] + [int(end[j])]
         knots.update(ks)
     steps = np.array(sorted(knots), np.int64)
-    levels, present = fault_levels(onset, magnitude, ramp, end, steps)
+    args = (onset, magnitude, ramp, end)
+    levels, present = fault_levels(*args, steps, growth=growth)
     ends = levels.copy()
-    ends[:-1] = fault_levels(onset, magnitude, ramp, end, steps[1:], steps[1:] - 1)[0]
+    ends[:-1] = fault_levels(*args, steps[1:], steps[1:] - 1, growth=growth)[0]
     return steps, levels, ends, present
 
 
@@ -237,6 +284,7 @@ def plan_phases(
     ramp=None,
     end=None,
     segments: int = RAMP_SEGMENTS,
+    growth=None,
 ):
     """The phases of one run from the onset step, magnitude, ramp and end of each fault.
 
@@ -251,6 +299,7 @@ def plan_phases(
         ramp: optional ``(F,)`` ramp lengths in steps.
         end: optional ``(F,)`` end steps (negative: never).
         segments: linear segments per ramp.
+        growth: optional ``(F,)`` growth codes (:data:`GROWTH_KINDS`).
 
     Returns:
         ``(thetas (K, P), codes (K,) int32, event_steps (K-1,) int32, present (K, F),
@@ -259,7 +308,7 @@ def plan_phases(
         ramp); the code of a phase holds the faults present.
     """
     F = table.num_faults
-    steps, levels, ends, present = fault_breakpoints(onset, magnitude, ramp, end, segments)
+    steps, levels, ends, present = fault_breakpoints(onset, magnitude, ramp, end, segments, growth)
     if len(steps) + 1 > num_phases:
         raise ValueError(f"{len(steps)} events need {len(steps) + 1} phases, got {num_phases}")
     levels = np.concatenate([np.zeros((1, F)), levels])
@@ -349,6 +398,7 @@ def truth_plan(
     ramp=None,
     end=None,
     segments: int = RAMP_SEGMENTS,
+    growth=None,
 ) -> TruthPlan:
     """The truth plan of one run or a batch of runs.
 
@@ -370,6 +420,8 @@ def truth_plan(
         ramp: optional ``(*runs, F)`` ramp length of each fault in steps (0: abrupt).
         end: optional ``(*runs, F)`` step at which each fault disappears (negative: never).
         segments: linear segments per ramp (:data:`RAMP_SEGMENTS`).
+        growth: optional ``(*runs, F)`` growth code of each fault's ramp
+            (:data:`GROWTH_KINDS`; default linear).
 
     Returns:
         The :class:`TruthPlan`.
@@ -387,16 +439,13 @@ def truth_plan(
     rmp = np.broadcast_to(np.asarray(rmp, np.int64), onset.shape).reshape(on.shape)
     fin = np.full(onset.shape, -1, np.int64) if end is None else end
     fin = np.broadcast_to(np.asarray(fin, np.int64), onset.shape).reshape(on.shape)
-    needed = [
-        len(fault_breakpoints(o, a, r, e, segments)[0])
-        for o, a, r, e in zip(on, mag, rmp, fin, strict=True)
-    ]
+    grw = np.zeros(onset.shape, np.int64) if growth is None else growth
+    grw = np.broadcast_to(np.asarray(grw, np.int64), onset.shape).reshape(on.shape)
+    events = list(zip(on, mag, rmp, fin, grw, strict=True))
+    needed = [len(fault_breakpoints(o, a, r, e, segments, g)[0]) for o, a, r, e, g in events]
     K = num_phases or 1 + max(needed, default=0)
     th, codes, steps, sets, _, th_end = zip(
-        *(
-            plan_phases(table, o, a, K, r, e, segments)
-            for o, a, r, e in zip(on, mag, rmp, fin, strict=True)
-        ),
+        *(plan_phases(table, o, a, K, r, e, segments, g) for o, a, r, e, g in events),
         strict=True,
     )
     th, th_end = np.array(th), np.array(th_end)  # (R, K, P) each

@@ -19,6 +19,7 @@ from typing import Any, NoReturn
 import numpy as np
 
 from uimm_jax._checks import integer_problem, is_number, positive_problem, type_name
+from uimm_jax.engine.truth import GROWTH_KINDS
 from uimm_jax.errors import ScenarioError
 from uimm_jax.plants.base import Plant
 from uimm_jax.scenario.spec import PSD_RTOL, SYMMETRY_RTOL
@@ -196,6 +197,30 @@ class FieldChecker:
         if not isinstance(value, bool):
             self.fail(field, f"must be true or false, got {type_name(value)}.")
         return value
+
+    def growth(self, entry: Mapping[str, Any], field: str, ramp: float) -> str:
+        """An event's ``growth`` (``field``: the event's header), one of ``GROWTH_KINDS``.
+
+        ``"exponential"`` needs a ``ramp`` > 0 (its time constant).
+        """
+        value = entry.get("growth", GROWTH_KINDS[0])
+        where = f"{field}.growth"
+        kinds = ", ".join(GROWTH_KINDS)
+        if not isinstance(value, str):
+            self.fail(where, f"must be a string, one of {kinds}; got {type_name(value)}.")
+        if value not in GROWTH_KINDS:
+            self.fail(
+                where,
+                f"unknown growth {value!r}.{suggest(value, GROWTH_KINDS)} Expected one of: "
+                f"{kinds}.",
+            )
+        if value != GROWTH_KINDS[0] and ramp <= 0:
+            self.fail(
+                where,
+                f"{value!r} needs {field}.ramp > 0: for this growth the ramp is the time "
+                "constant tau (s) of magnitude * (1 - exp(-(t - time) / tau)).",
+            )
+        return str(value)
 
     def string(self, value: Any, field: str) -> str:
         if not isinstance(value, str):

@@ -146,7 +146,7 @@ _TOP_KEYS = (
 _PLANT_KEYS = ("model", "params", "module")
 _INPUT_KEYS = ("kind", "amplitude", "frequency", "offset", "step_time")
 _NOISE_KEYS = ("process", "measurement")
-_EVENT_KEYS = ("time", "fault", "magnitude", "ramp", "end")
+_EVENT_KEYS = ("time", "fault", "magnitude", "ramp", "end", "growth")
 
 _HINTS = {
     "name": 'a label for outputs, e.g. name = "paper-sim1"',
@@ -469,5 +469,6 @@ class _Parser(FilterParser):
             end = None
             if "end" in entry:
                 end = self.end_time(entry["end"], f"{header}.end", time, step, dt, duration)
-            events.append(EventSpec(time, fault, magnitude, ramp, end))
+            growth = self.growth(entry, header, ramp)
+            events.append(EventSpec(time, fault, magnitude, ramp, end, growth))
         return tuple(sorted(events, key=lambda e: e.time))

@@ -121,8 +121,11 @@ class EventSpec:
             (fault_value - nominal)``, or ``nominal * (fault_value / nominal)^magnitude``
             for the plant's positive parameters).
         ramp: s; the magnitude grows linearly from 0 at ``time`` to ``magnitude`` at
-            ``time + ramp`` (0: abrupt).
+            ``time + ramp`` (0: abrupt); with ``growth = "exponential"``, the time
+            constant ``tau`` of ``magnitude (1 - exp(-(t - time) / tau))``.
         end: s or ``None``; from ``end`` on the fault is gone (intermittent or repaired).
+        growth: ``"linear"`` or ``"exponential"``
+            (:data:`~uimm_jax.engine.truth.GROWTH_KINDS`): the shape of a ramp.
     """
 
     time: float
@@ -130,6 +133,7 @@ class EventSpec:
     magnitude: float = 1.0
     ramp: float = 0.0
     end: float | None = None
+    growth: str = "linear"
 
 
 @dataclasses.dataclass(frozen=True)

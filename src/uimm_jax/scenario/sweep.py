@@ -44,7 +44,7 @@ _SWEEP_KEYS = (
     "chunk",
 )
 _CASE_KEYS = ("name", "events")
-_EVENT_KEYS = ("fault", "time", "magnitude", "ramp", "duration")
+_EVENT_KEYS = ("fault", "time", "magnitude", "ramp", "duration", "growth")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,10 +57,12 @@ class EventDraw:
             onset is drawn uniformly in ``[lo, hi)`` per run and rounded to a step.
         magnitude: the fault's size (before the cell's scale; 1 = the library's value,
             :func:`~uimm_jax.engine.bank.param_at_magnitude`).
-        ramp: s, linear growth from nominal to the magnitude (0: abrupt); a cell of the
-            ``ramps`` axis replaces it.
+        ramp: s, linear growth from nominal to the magnitude (0: abrupt); the time
+            constant of an exponential ``growth``; a cell of the ``ramps`` axis replaces it.
         duration: ``(lo, hi)`` s the fault lasts, drawn uniformly per run (an intermittent
             fault), or ``None``: it stays.
+        growth: the ramp's shape, ``"linear"`` or ``"exponential"``
+            (:attr:`~uimm_jax.scenario.spec.EventSpec.growth`).
     """
 
     fault: str
@@ -68,6 +70,7 @@ class EventDraw:
     magnitude: float = 1.0
     ramp: float = 0.0
     duration: tuple[float, float] | None = None
+    growth: str = "linear"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -185,7 +188,8 @@ def _parse_event(chk: FieldChecker, entry: Any, field: str, scenario) -> EventDr
                 f"{entry['duration']!r} s: a fault must last at least one sample "
                 f"(dt = {float(scenario.dt)!r} s).",
             )
-    return EventDraw(str(fault), (lo, hi), mag, ramp, duration)
+    growth = chk.growth(entry, field, ramp)
+    return EventDraw(str(fault), (lo, hi), mag, ramp, duration, growth)
 
 
 def _parse_cases(chk: FieldChecker, value: Any, scenario) -> tuple[CaseSpec, ...]:
@@ -306,6 +310,7 @@ def sweep_spec(
                 float(e.magnitude),
                 float(e.ramp),
                 None if e.end is None else (e.end - e.time, e.end - e.time),
+                e.growth,
             )
             for e in scenario.events
         )

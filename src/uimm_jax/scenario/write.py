@@ -78,6 +78,7 @@ def scenario_to_dict(scenario: Scenario) -> dict[str, Any]:
             {"time": float(e.time), "fault": e.fault, "magnitude": float(e.magnitude)}
             | ({"ramp": float(e.ramp)} if e.ramp else {})
             | ({} if e.end is None else {"end": float(e.end)})
+            | ({} if e.growth == "linear" else {"growth": e.growth})
             for e in scenario.events
         ]
     flt = scenario.filter

@@ -194,9 +194,9 @@ def setup_scenario(
     init = diag.init(np.asarray(flt.initial_mean), np.asarray(flt.initial_cov), mu0, (), dtype)
     # Truth plan: phase 0 nominal, then one phase per event (faults accumulate).
     onset, magnitude, steps = scenario_onsets(scenario, table.names, magnitude_scale)
-    ramp, end = scenario_ramps(scenario, table.names)
+    ramp, end, growth = scenario_ramps(scenario, table.names)
     plan = build_truth_plan(
-        scenario, diag.dyn, table, onset, magnitude, dtype=dtype, ramp=ramp, end=end
+        scenario, diag.dyn, table, onset, magnitude, dtype=dtype, ramp=ramp, end=end, growth=growth
     )
     return RunSetup(
         scenario,
@@ -571,6 +571,7 @@ def summarize(
         "events": [
             {"fault": ev.fault, "time": float(ev.time), "magnitude": float(ev.magnitude)}
             | {"ramp": float(ev.ramp), "end": None if ev.end is None else float(ev.end)}
+            | {"growth": ev.growth}
             for ev in sc.events
         ],
         "declarations": [

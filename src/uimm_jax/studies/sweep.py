@@ -68,7 +68,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from uimm_jax.engine import metrics
-from uimm_jax.engine.truth import RAMP_SEGMENTS, run_keys
+from uimm_jax.engine.truth import GROWTH_KINDS, RAMP_SEGMENTS, fault_levels, run_keys
 from uimm_jax.engine.uimm_est import UIMMEstDiagnoser
 from uimm_jax.errors import UIMMWarning
 from uimm_jax.scenario.sweep import FAULT_FREE, CaseSpec, SweepSpec, sweep_spec
@@ -328,6 +328,7 @@ def run_sweep(
     mag_arr = np.zeros((C, R, F))
     ramp_arr = np.zeros((C, R, F), np.int64)
     end_arr = np.full((C, R, F), -1, np.int64)
+    growth_arr = np.zeros((C, R, F), np.int64)
     for cell in cells:
         if cell.case == FAULT_FREE:
             continue
@@ -338,8 +339,15 @@ def run_sweep(
             mag_arr[cell.index, :, j] = ev.magnitude * cell.magnitude
             ramp_s = ev.ramp if cell.ramp is None else cell.ramp
             ramp_arr[cell.index, :, j] = int(round(ramp_s / dt))
+            growth_arr[cell.index, :, j] = GROWTH_KINDS.index(ev.growth)
             last = lasts[case.name][:, e]
             end_arr[cell.index, :, j] = np.where(last > 0, onsets[case.name][:, e] + last, -1)
+    # The truth's magnitude at the run's last step (a ramp may not have completed; an
+    # ended fault counted as if it had stayed), against which estimates are scored.
+    at_end = np.zeros_like(mag_arr)
+    for c, r in np.ndindex(C, R):
+        args = (onset_step[c, r], mag_arr[c, r], ramp_arr[c, r], None, [N - 1])
+        at_end[c, r] = fault_levels(*args, growth=growth_arr[c, r])[0][0]
     K = _max_phases(spec)
     # Batches: as few as ``batch`` allows, of equal sizes, a multiple of LANES per device.
     jobs_per_method = R * (C // len(spec.methods))
@@ -399,6 +407,7 @@ def run_sweep(
                 dtype,
                 ramp=ramp_arr[ci, ri],
                 end=end_arr[ci, ri],
+                growth=growth_arr[ci, ri],
             )
             label = f"{method} batch {b + 1}/{nbm}"
             cb = None
@@ -458,7 +467,7 @@ def run_sweep(
         nis_channels=fin.nis_channels,
         outputs=tuple(scenario.plant.output_names),
         noise_keys=noise_keys,
-        true_magnitude=mag_arr,
+        true_magnitude=at_end,
         end_step=end_arr,
         estimates=est_arr if UIMMEstDiagnoser.method in spec.methods else None,
         runtime_s=time.perf_counter() - t_start,

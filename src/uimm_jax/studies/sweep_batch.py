@@ -44,6 +44,7 @@ def batch_inputs(
     dtype,
     ramp=None,
     end=None,
+    growth=None,
 ) -> tuple[TruthPlan, jax.Array, SimCarry]:
     """Truth plan, noise keys and initial carry of one batch of ``B`` runs.
 
@@ -57,6 +58,7 @@ def batch_inputs(
         dtype: float dtype.
         ramp: optional ``(B, F)`` ramp steps of each fault.
         end: optional ``(B, F)`` end step of each fault (-1: never).
+        growth: optional ``(B, F)`` growth code of each fault's ramp.
     """
     scenario = setup.scenario
     B = len(keys)
@@ -71,6 +73,7 @@ def batch_inputs(
         noise_scale=noise_scale,
         ramp=ramp,
         end=end,
+        growth=growth,
         where="[sweep]: ",
         hint="the magnitudes and the fault values",
     )

@@ -109,7 +109,9 @@ class SweepResult:
         nis: ``(C, R)`` each run's summed NIS per channel of the leading model (its mean
             over the run: ``/ num_steps``; the innovation check), or ``None``.
         noise_keys: ``(R, 2)`` uint32 noise key of each run, or ``None``.
-        true_magnitude: ``(C, R, F)`` truth magnitude of each fault (0: no event).
+        true_magnitude: ``(C, R, F)`` the truth's magnitude of each fault at the run's
+            last step (a ramp's level if it has not completed; an ended fault's as if it
+            had stayed; 0: no event).
         end_step: ``(C, R, F)`` step at which each fault ends (-1: never).
         estimates: for size-estimating methods (``uimm-est``), ``(C, R, ...)`` arrays
             ``retract_step``, ``declarations``, ``false_count``, ``magnitude`` and
@@ -228,6 +230,7 @@ def spec_settings(spec: SweepSpec) -> dict:
                         "magnitude": e.magnitude,
                         "ramp": e.ramp,
                         "duration": None if e.duration is None else list(e.duration),
+                        "growth": e.growth,
                     }
                     for e in c.events
                 ],

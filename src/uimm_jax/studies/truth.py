@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from uimm_jax.engine.truth import (
+    GROWTH_KINDS,
     InputSignal,
     NonFiniteTruth,
     TruthPlan,
@@ -33,32 +34,35 @@ __all__ = [
 
 
 def scenario_ramps(scenario, names):
-    """Ramp length and end step of each fault from a scenario's ``[[events]]``.
+    """Ramp length, end step and growth of each fault from a scenario's ``[[events]]``.
 
     Returns:
-        ``(ramp (F,) int64, end (F,) int64)``: ramp steps ``round(ramp / dt)`` (0:
-        abrupt), end step ``round(end / dt)`` (``-1``: never).
+        ``(ramp (F,) int64, end (F,) int64, growth (F,) int64)``: ramp steps
+        ``round(ramp / dt)`` (0: abrupt), end step ``round(end / dt)`` (``-1``: never),
+        growth code (:data:`~uimm_jax.engine.truth.GROWTH_KINDS`).
     """
     names = list(names)
     ramp = np.zeros(len(names), np.int64)
     end = np.full(len(names), -1, np.int64)
+    growth = np.zeros(len(names), np.int64)
     for ev in scenario.events:
         j = names.index(ev.fault)
         ramp[j] = int(round(ev.ramp / scenario.dt))
+        growth[j] = GROWTH_KINDS.index(ev.growth)
         if ev.end is not None:
             end[j] = int(round(ev.end / scenario.dt))
-    return ramp, end
+    return ramp, end, growth
 
 
 def true_magnitudes(scenario, names, num_steps: int, magnitude_scale: float = 1.0) -> np.ndarray:
     """``(N, F)`` the truth's magnitude of each fault at each step (0: absent).
 
-    The truth plan's own rule (:func:`~uimm_jax.engine.truth.fault_levels`: linear over a
+    The truth plan's own rule (:func:`~uimm_jax.engine.truth.fault_levels`: along a
     ramp, 0 after an end), at every step.
     """
     onset, magnitude, _ = scenario_onsets(scenario, names, magnitude_scale)
-    ramp, end = scenario_ramps(scenario, names)
-    return fault_levels(onset, magnitude, ramp, end, np.arange(num_steps))[0]
+    ramp, end, growth = scenario_ramps(scenario, names)
+    return fault_levels(onset, magnitude, ramp, end, np.arange(num_steps), growth=growth)[0]
 
 
 def scenario_onsets(scenario, names, magnitude_scale: float = 1.0):
@@ -98,6 +102,7 @@ def build_truth_plan(
     noise_scale=None,
     ramp=None,
     end=None,
+    growth=None,
     where: str = "",
     hint: str = "[[events]].magnitude, the fault values and [plant.params]",
 ) -> TruthPlan:
@@ -114,6 +119,7 @@ def build_truth_plan(
         noise_scale: optional ``(B,)`` scales of the truth noise standard deviations.
         ramp: optional ``(*runs, F)`` ramp steps of each fault (0: abrupt).
         end: optional ``(*runs, F)`` end step of each fault (``-1``: never).
+        growth: optional ``(*runs, F)`` growth code of each fault's ramp.
         where: prefix of the error message naming the input (e.g. ``"[sweep]: "``).
         hint: what the error message asks to check.
 
@@ -136,6 +142,7 @@ def build_truth_plan(
             dtype=dtype,
             ramp=ramp,
             end=end,
+            growth=growth,
         )
     except NonFiniteTruth as err:
         faults = [
