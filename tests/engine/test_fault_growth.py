@@ -131,6 +131,10 @@ def test_events_and_sweep_cases_take_growth_and_write_it_back():
     spec = sweep_spec(sc, runs=2, cases=[case])
     assert spec.cases[0].events[0].growth == "exponential"
     assert sweep_spec(sc, runs=2).cases[0].events[0].growth == "exponential"
+    del case["events"][0]["ramp"]  # the time constant from the ramps axis, else refused
+    assert sweep_spec(sc, runs=2, cases=[case], ramps=[0.1]).ramps == (0.1,)
+    with pytest.raises(ScenarioError, match=r"events\[0\]\.growth: 'exponential' needs"):
+        sweep_spec(sc, runs=2, cases=[case])
     case["events"][0]["growth"] = "linar"
     with pytest.raises(ScenarioError, match=r"cases\[0\]\.events\[0\]\.growth: .*'linear'"):
         sweep_spec(sc, runs=2, cases=[case])

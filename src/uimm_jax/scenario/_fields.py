@@ -198,10 +198,13 @@ class FieldChecker:
             self.fail(field, f"must be true or false, got {type_name(value)}.")
         return value
 
-    def growth(self, entry: Mapping[str, Any], field: str, ramp: float) -> str:
+    def growth(
+        self, entry: Mapping[str, Any], field: str, ramp: float, ramp_axis: bool = False
+    ) -> str:
         """An event's ``growth`` (``field``: the event's header), one of ``GROWTH_KINDS``.
 
-        ``"exponential"`` needs a ``ramp`` > 0 (its time constant).
+        ``"exponential"`` needs a ``ramp`` > 0 (its time constant), unless a sweep's
+        ``ramps`` axis gives it (``ramp_axis``; a cell of 0 is then abrupt).
         """
         value = entry.get("growth", GROWTH_KINDS[0])
         where = f"{field}.growth"
@@ -214,11 +217,12 @@ class FieldChecker:
                 f"unknown growth {value!r}.{suggest(value, GROWTH_KINDS)} Expected one of: "
                 f"{kinds}.",
             )
-        if value != GROWTH_KINDS[0] and ramp <= 0:
+        if value != GROWTH_KINDS[0] and ramp <= 0 and not ramp_axis:
             self.fail(
                 where,
-                f"{value!r} needs {field}.ramp > 0: for this growth the ramp is the time "
-                "constant tau (s) of magnitude * (1 - exp(-(t - time) / tau)).",
+                f"{value!r} needs {field}.ramp > 0 (or a [sweep] ramps axis): for this growth "
+                "the ramp is the time constant tau (s) of magnitude * (1 - exp(-(t - time) / "
+                "tau)).",
             )
         return str(value)
 

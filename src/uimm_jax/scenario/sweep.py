@@ -154,7 +154,9 @@ def _positive_numbers(chk: FieldChecker, value: Any, field: str) -> tuple[float,
     return out
 
 
-def _parse_event(chk: FieldChecker, entry: Any, field: str, scenario) -> EventDraw:
+def _parse_event(
+    chk: FieldChecker, entry: Any, field: str, scenario, ramp_axis: bool
+) -> EventDraw:
     if not isinstance(entry, Mapping):
         chk.fail(field, f"must be a table {{fault = ..., time = ...}}, got {entry!r}.")
     chk.keys(entry, field, _EVENT_KEYS)
@@ -188,11 +190,13 @@ def _parse_event(chk: FieldChecker, entry: Any, field: str, scenario) -> EventDr
                 f"{entry['duration']!r} s: a fault must last at least one sample "
                 f"(dt = {float(scenario.dt)!r} s).",
             )
-    growth = chk.growth(entry, field, ramp)
+    growth = chk.growth(entry, field, ramp, ramp_axis)
     return EventDraw(str(fault), (lo, hi), mag, ramp, duration, growth)
 
 
-def _parse_cases(chk: FieldChecker, value: Any, scenario) -> tuple[CaseSpec, ...]:
+def _parse_cases(
+    chk: FieldChecker, value: Any, scenario, ramp_axis: bool
+) -> tuple[CaseSpec, ...]:
     field = "[sweep].cases"
     if not isinstance(value, list | tuple):
         chk.fail(field, f"must be an array of tables ([[sweep.cases]]), got {value!r}.")
@@ -222,7 +226,8 @@ def _parse_cases(chk: FieldChecker, value: Any, scenario) -> tuple[CaseSpec, ...
                 "fault-free case is added by fault_free = true).",
             )
         events = tuple(
-            _parse_event(chk, e, f"{cf}.events[{j}]", scenario) for j, e in enumerate(evs)
+            _parse_event(chk, e, f"{cf}.events[{j}]", scenario, ramp_axis)
+            for j, e in enumerate(evs)
         )
         seen = [e.fault for e in events]
         dup = {f for f in seen if seen.count(f) > 1}
@@ -316,7 +321,7 @@ def sweep_spec(
         )
         cases_ = (CaseSpec(scenario.name, evs),) if evs else ()
     else:
-        cases_ = _parse_cases(chk, v, scenario)
+        cases_ = _parse_cases(chk, v, scenario, ramps_ != (None,))
     if not cases_ and not ff:
         chk.fail("[sweep].cases", "no fault case and fault_free = false: nothing to run.")
     _check_positive_params(chk, scenario, cases_, mags, pick("magnitudes", magnitudes)[1])
