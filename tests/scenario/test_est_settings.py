@@ -197,6 +197,7 @@ def test_tuning_says_to_drop_the_table_from_its_fixed_size_copy():
 
 COUNTED = ("restart_gap", "floor_gap", "post_gap", "settle_steps", "post_floor_gap")
 COUNTED += ("retract_hold", "low_floor_age", "retract_young", "settle_creep", "retract_rise")
+COUNTED += ("drift_steps",)
 
 
 def test_counted_settings_keep_their_meaning_in_seconds_at_another_dt():
@@ -209,6 +210,7 @@ def test_counted_settings_keep_their_meaning_in_seconds_at_another_dt():
     assert (slow.low_floor_age, slow.restart_gap, slow.floor_gap, slow.post_gap) == (800, 1, 1, 0)
     assert slow.retract_young == 6000  # 6 s either way
     assert slow.retract_rise == 100  # 0.1 s either way
+    assert slow.drift_steps == 2  # 2 ms either way
     assert slow._replace(**{k: getattr(s, k) for k in COUNTED}, steps_dt=1e-4) == s  # no other
     assert slow.steps_dt == 1e-3 and settings_at_dt(slow, 1e-3) is slow
     fast = settings_at_dt(s, 4e-5)  # 2.5 times faster: 3 * 2.5 = 7.5 rounds to 8

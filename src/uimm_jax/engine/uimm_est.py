@@ -190,6 +190,7 @@ class UIMMEstDiagnoser(Diagnoser):
             jnp.zeros(tuple(runs), jnp.int32),
             jnp.zeros((F,) + tuple(runs), bool),
             jnp.zeros((F,) + tuple(runs), jnp.int32),
+            jnp.zeros((F,) + tuple(runs), dtype),
         )
 
     def step(
@@ -213,6 +214,9 @@ class UIMMEstDiagnoser(Diagnoser):
         )
         if s.walk_rel:  # a declared fault's walk grows with its size
             imm0 = rules.walk_rel(s, n, imm0, declared, since)
+        drift = state.drift
+        if s.drift_walk:  # a fault's walk follows its estimate's growth
+            imm0 = rules.drift_walk(s, n, imm0, declared, drift)
         q_aug = jnp.zeros((n + F, n + F), dtype).at[:n, :n].set(params.imm.Q)
         q_aug = q_aug.at[n:, n:].set(jnp.eye(F, dtype=dtype) * s.walk**2)
         if s.walk_settled:  # a fault declared settle_steps ago walks slower: Q per run
@@ -232,6 +236,10 @@ class UIMMEstDiagnoser(Diagnoser):
         pick = slot[:, None] == np.arange(self.num_models).reshape((1, -1) + (1,) * (slot.ndim - 1))
         est = jnp.sum(jnp.where(pick, mags, 0.0), axis=1)  # (F, *runs)
         est_sd = jnp.sqrt(jnp.maximum(jnp.sum(jnp.where(pick, var, 0.0), axis=1), 0.0))
+        if s.drift_walk:  # the step's move of each estimate, from after the rules
+            before = jnp.sum(jnp.where(pick, imm0.mean[n:], 0.0), axis=1)
+            fresh = ~declared & (since < rules.DRIFT_WAIT * s.drift_steps)
+            drift = rules.drift_update(s, drift, est - before, fresh)
 
         def cand_set(c):
             full = self._candidate_set(c, declared)
@@ -301,6 +309,7 @@ class UIMMEstDiagnoser(Diagnoser):
             chal,
             fresh,
             rise,
+            drift,
         )
         recognised = jnp.where(any_ret, new_declared, dec.candidate_set)
         step_info = info._replace(

@@ -221,6 +221,13 @@ class EstSettings(NamedTuple):
             ``_est_rules.reset_unused``; docs/faults.md, "Session 16": sim 2 with air in
             oil first, 21 and 39 false runs of 64 at 0.5 and 1 down to 0; standard
             deviations; 0: off; 2, the default since session 16).
+        drift_walk: a fault's magnitude walks with standard deviation ``max(walk,
+            drift_walk * d)``, ``d`` the growth of its estimate per step averaged over
+            ``drift_steps`` steps (``EstState.drift``): an estimate that moves away from
+            nominal at the rate of a fast ramp gets a walk that follows it, and its walk
+            falls back once the fault stops growing (see ``_est_rules.drift_walk``;
+            docs/faults.md, "Ramps", "Session 19"; 0: off).
+        drift_steps: the steps of that average (an exponential one).
     """
 
     walk: float = 1e-3
@@ -261,6 +268,8 @@ class EstSettings(NamedTuple):
     reopen_old: float = 0.01
     retract_rise: int = 1000
     floor_z: float = 2.0
+    drift_walk: float = 0.0
+    drift_steps: int = 20
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -300,6 +309,8 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "reopen_old": (0.0, False, "a fraction of the estimate; 0: off"),
     "retract_rise": (0, False, "steps; 0: off"),
     "floor_z": (0.0, False, "standard deviations; 0: off"),
+    "drift_walk": (0.0, False, "a multiple of the estimate's drift per step; 0: off"),
+    "drift_steps": (1, False, _STEPS),
 }
 _HIGH = {"restart_below": 1.0, "tangent_order": 12}
 
@@ -430,7 +441,7 @@ def est_value_from_text(name: str, text: str) -> Any:
 
 COUNTED_SETTINGS = ("restart_gap", "floor_gap", "post_gap", "settle_steps", "post_floor_gap")
 COUNTED_SETTINGS += ("retract_hold", "low_floor_age", "retract_young", "settle_creep")
-COUNTED_SETTINGS += ("retract_rise",)
+COUNTED_SETTINGS += ("retract_rise", "drift_steps")
 """The settings counted in steps, which :func:`settings_at_dt` converts."""
 
 
@@ -503,6 +514,8 @@ class EstState(NamedTuple):
             false while it is off).
         rise: ``(F, *runs)`` int32, steps each declared fault's retraction hypothesis has
             stayed at or above ``RISE_LEVEL`` (``retract_rise``; zeros while it is off).
+        drift: ``(F, *runs)`` each fault's estimate's change per step, averaged over
+            ``drift_steps`` (``drift_walk``; zeros while it is off).
     """
 
     imm: IMMState
@@ -516,6 +529,7 @@ class EstState(NamedTuple):
     chal: jax.Array
     fresh: jax.Array
     rise: jax.Array
+    drift: jax.Array
 
 
 class EstInfo(NamedTuple):
