@@ -111,6 +111,24 @@ def settle_low(s: EstSettings, declared, est, since, anchor, fresh):
     return jnp.where(down, est, anchor), fresh & ~down
 
 
+def settle_up(s: EstSettings, declared, est, est_sd, since, anchor):
+    """``settle_up``: a settling fault that did not grow in its last fast walk is settled.
+
+    :func:`moved` re-anchors only on moves of ``settle_move`` sds, so during a fast walk
+    (sd 0.04 for valve wear at 2) the anchor is left up to 0.4 behind; when the walk
+    settles its sd collapses (to 0.004) and that old distance restarts the age (the fast
+    walk) although the fault no longer grows (docs/faults.md, "Session 19": sim 2's valve
+    wear re-opened 0.05-0.47 s after its ramp ended, and air in oil's onset in that walk
+    was absorbed).  Here, on the step a declared fault settles (``since == settle_steps``),
+    an anchor nearer nominal than the estimate by at most ``settle_up`` of its sd
+    ``est_sd`` comes up to the estimate.  A larger distance (the fault grew in that walk)
+    leaves the anchor, as before.  Returns the new ``anchor``.
+    """
+    gap = jnp.abs(est) - jnp.abs(anchor)
+    up = declared & (since == s.settle_steps) & (gap > 0) & (gap <= s.settle_up * est_sd)
+    return jnp.where(up, est, anchor)
+
+
 def settle_creep(s: EstSettings, declared, est, since, anchor):
     """``settle_creep``: a settled fault's anchor follows its estimate away from nominal.
 
@@ -397,3 +415,44 @@ def reopen(s: EstSettings, n: int, st: IMMState, new: jax.Array, kept: jax.Array
     target = (rel[:, None] * st.mean[n:]) ** 2
     add = jnp.where((new | kept)[:, None], jnp.maximum(target - mag_var(st.cov, n), 0.0), 0.0)
     return st._replace(cov=add_mag_var(st.cov, n, add))
+
+
+def peak(s: EstSettings, fresh_decl, est, est_sd, since, start, anchor, level, level_sd):
+    """``restore_old``: each declared fault's level, ``(F, *runs)``, and its sd then.
+
+    Model 0's estimate on its declaration, then the anchor's high-water mark: the anchor
+    whenever it moves beyond the level, away from nominal (:func:`moved`'s growth,
+    ``settle_up``, ``settle_creep``); and on the step the fault settles, an anchor that
+    ``settle_low`` brought down (a declaration above the truth).  A move towards nominal
+    by :func:`moved` leaves the level.  ``start`` is the anchor at the step's start.
+    """
+    high = jnp.abs(anchor) > jnp.abs(level)
+    low = (since == s.settle_steps) & (jnp.abs(anchor) < jnp.abs(start)) if s.settle_low else False
+    take = fresh_decl | ((high | low) & (anchor != start))
+    value = jnp.where(fresh_decl, est, anchor)
+    return jnp.where(take, value, level), jnp.where(take, est_sd, level_sd)
+
+
+LEVEL_Z = 2.0
+"""``restore_old``: a level is restored only if the estimate lies this many of its sds below."""
+
+
+def restore(s: EstSettings, n: int, st: IMMState, kept, est, est_sd, level, level_sd):
+    """``restore_old``: a kept fault pulled towards nominal gets its level back, every model.
+
+    While a new fault's hypothesis rises, model 0 explains its onset by the declared
+    faults, most where a declared fault still walks fast (sim 2's valve wear at 2, 2.01 ->
+    1.68 in 70 ms as air in oil began, sd 0.04 -> 0.005), and the hand-over passes that
+    estimate to every model (docs/faults.md, "Session 19").  On the step that declares
+    another fault, a fault that stays declared (``kept``) whose estimate ``est`` lies more
+    than ``restore_old`` of its sds ``est_sd``, and more than :data:`LEVEL_Z` of the
+    level's ``level_sd``, nearer nominal than its ``level`` (:func:`peak`) takes that level
+    as its mean in every model (the covariance is left; ``reopen_old`` widens it after the
+    hand-over).  ``level_sd`` keeps a declaration's loose estimate (``reopen_rel``) from
+    being restored over the settled one.  Returns the state and the faults restored
+    ``(F, *runs)``.
+    """
+    drop = jnp.abs(level) - jnp.abs(est)
+    back = kept & (drop > s.restore_old * est_sd) & (drop > LEVEL_Z * level_sd)
+    mean = st.mean.at[n:].set(jnp.where(back[:, None], level[:, None], st.mean[n:]))
+    return st._replace(mean=mean), back

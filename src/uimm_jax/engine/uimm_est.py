@@ -190,6 +190,8 @@ class UIMMEstDiagnoser(Diagnoser):
             jnp.zeros(tuple(runs), jnp.int32),
             jnp.zeros((F,) + tuple(runs), bool),
             jnp.zeros((F,) + tuple(runs), jnp.int32),
+            jnp.zeros((F,) + tuple(runs), dtype),
+            jnp.zeros((F,) + tuple(runs), dtype),
         )
 
     def step(
@@ -271,14 +273,21 @@ class UIMMEstDiagnoser(Diagnoser):
         winner = jnp.where(any_ret, first, dec.candidate)
         changed = dec.declared_now | any_ret
         new_declared = jnp.where(retract, False, dec.declared)
-        imm_state, cache = self._handover(imm_state, state.cache, winner, changed, new_declared)
         fresh_decl = new_declared & ~declared
         kept = new_declared & declared & jnp.any(fresh_decl, axis=0)
+        anchor, fresh, level, level_sd = state.anchor, state.fresh, state.level, state.level_sd
+        if s.restore_old:  # a kept fault pulled towards nominal by the new one's onset
+            imm_state, back = rules.restore(s, n, imm_state, kept, est, est_sd, level, level_sd)
+            anchor = jnp.where(back, level, anchor)
+        imm_state, cache = self._handover(imm_state, state.cache, winner, changed, new_declared)
         imm_state = rules.reopen(s, n, imm_state, fresh_decl, kept)
-        anchor, fresh = state.anchor, state.fresh
+        start = anchor
         if rules.growth_ages(s):  # a fault still growing is not settled
             if s.settle_low:  # a declaration's anchor comes down to a settled estimate
                 anchor, fresh = rules.settle_low(s, declared, est, since, anchor, fresh)
+            if s.settle_up:  # a fault that settles without having grown is settled
+                up = rules.settle_up(s, declared, est, est_sd, since, anchor)
+                anchor, fresh = up, fresh & (up == anchor)
             old = anchor
             since, anchor = rules.moved(s, declared, est, est_sd, since, anchor)
             anchor = jnp.where(new_declared & ~declared, est, anchor)
@@ -286,6 +295,11 @@ class UIMMEstDiagnoser(Diagnoser):
                 fresh = jnp.where(anchor != old, False, fresh) | (new_declared & ~declared)
             if s.settle_creep:  # a settled anchor follows its estimate away from nominal
                 anchor = rules.settle_creep(s, declared, est, since, anchor)
+        if s.restore_old:  # a restored fault keeps its level as anchor, and its age
+            anchor = jnp.where(back, level, anchor)
+            level, level_sd = rules.peak(
+                s, fresh_decl, est, est_sd, since, start, anchor, level, level_sd
+            )
         if s.walk_settled:  # since: a declared fault's age; a retracted one is due again
             since = jnp.where(new_declared & ~declared, 0, since)
             since = jnp.where(retract, rules.gap_cap(s), since).astype(jnp.int32)
@@ -301,6 +315,8 @@ class UIMMEstDiagnoser(Diagnoser):
             chal,
             fresh,
             rise,
+            level,
+            level_sd,
         )
         recognised = jnp.where(any_ret, new_declared, dec.candidate_set)
         step_info = info._replace(

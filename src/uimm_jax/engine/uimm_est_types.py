@@ -221,6 +221,15 @@ class EstSettings(NamedTuple):
             ``_est_rules.reset_unused``; docs/faults.md, "Session 16": sim 2 with air in
             oil first, 21 and 39 false runs of 64 at 0.5 and 1 down to 0; standard
             deviations; 0: off; 2, the default since session 16).
+        settle_up: with ``settle_move``, on the step a declared fault settles, an anchor
+            nearer nominal than the estimate by at most this many of its sds comes up to
+            it, so that the sd's collapse does not re-open the walk of a fault that did
+            not grow (see ``_est_rules.settle_up``; docs/faults.md, "Session 19";
+            standard deviations; 0: off, the default).
+        restore_old: on a declaration, a fault that stays declared whose estimate lies
+            more than this many of its sds nearer nominal than its level at its last
+            growth (``EstState.level``) takes that level back, in every model (see
+            ``_est_rules.restore``; docs/faults.md, "Session 19"; 0: off, the default).
     """
 
     walk: float = 1e-3
@@ -261,6 +270,8 @@ class EstSettings(NamedTuple):
     reopen_old: float = 0.01
     retract_rise: int = 1000
     floor_z: float = 2.0
+    settle_up: float = 0.0
+    restore_old: float = 0.0
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -300,6 +311,8 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "reopen_old": (0.0, False, "a fraction of the estimate; 0: off"),
     "retract_rise": (0, False, "steps; 0: off"),
     "floor_z": (0.0, False, "standard deviations; 0: off"),
+    "settle_up": (0.0, False, "standard deviations; 0: off"),
+    "restore_old": (0.0, False, "standard deviations; 0: off"),
 }
 _HIGH = {"restart_below": 1.0, "tangent_order": 12}
 
@@ -503,6 +516,8 @@ class EstState(NamedTuple):
             false while it is off).
         rise: ``(F, *runs)`` int32, steps each declared fault's retraction hypothesis has
             stayed at or above ``RISE_LEVEL`` (``retract_rise``; zeros while it is off).
+        level: ``(F, *runs)`` each declared fault's level (``_est_rules.peak``), and
+            ``level_sd`` its sd then (``restore_old``; zeros while it is off).
     """
 
     imm: IMMState
@@ -516,6 +531,8 @@ class EstState(NamedTuple):
     chal: jax.Array
     fresh: jax.Array
     rise: jax.Array
+    level: jax.Array
+    level_sd: jax.Array
 
 
 class EstInfo(NamedTuple):
