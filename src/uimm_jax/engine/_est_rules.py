@@ -117,12 +117,13 @@ def settle_up(s: EstSettings, declared, est, est_sd, since, anchor):
     :func:`moved` re-anchors only on moves of ``settle_move`` sds, so during a fast walk
     (sd 0.04 for valve wear at 2) the anchor is left up to 0.4 behind; when the walk
     settles its sd collapses (to 0.004) and that old distance restarts the age (the fast
-    walk) although the fault no longer grows (docs/faults.md, "Session 19": sim 2's valve
-    wear re-opened 0.05-0.47 s after its ramp ended, and air in oil's onset in that walk
-    was absorbed).  Here, on the step a declared fault settles (``since == settle_steps``),
-    an anchor nearer nominal than the estimate by at most ``settle_up`` of its sd
-    ``est_sd`` comes up to the estimate.  A larger distance (the fault grew in that walk)
-    leaves the anchor, as before.  Returns the new ``anchor``.
+    walk) although the fault no longer grows: sim 2's valve wear re-opened 0.2-0.5 s after
+    its ramp ended, and air in oil's onset in that walk was absorbed (session 19, its
+    README in benchmarks/results/faults_unknown_size/session19_absorb).  Here, on the step
+    a declared fault settles (``since == settle_steps``), an anchor nearer nominal than
+    the estimate by at most ``settle_up`` of its sd ``est_sd`` comes up to the estimate.
+    A larger distance (the fault grew in that walk) leaves the anchor, as before.  Returns
+    the new ``anchor``.
     """
     gap = jnp.abs(est) - jnp.abs(anchor)
     up = declared & (since == s.settle_steps) & (gap > 0) & (gap <= s.settle_up * est_sd)
@@ -443,14 +444,13 @@ def restore(s: EstSettings, n: int, st: IMMState, kept, est, est_sd, level, leve
     While a new fault's hypothesis rises, model 0 explains its onset by the declared
     faults, most where a declared fault still walks fast (sim 2's valve wear at 2, 2.01 ->
     1.68 in 70 ms as air in oil began, sd 0.04 -> 0.005), and the hand-over passes that
-    estimate to every model (docs/faults.md, "Session 19").  On the step that declares
-    another fault, a fault that stays declared (``kept``) whose estimate ``est`` lies more
-    than ``restore_old`` of its sds ``est_sd``, and more than :data:`LEVEL_Z` of the
-    level's ``level_sd``, nearer nominal than its ``level`` (:func:`peak`) takes that level
-    as its mean in every model (the covariance is left; ``reopen_old`` widens it after the
-    hand-over).  ``level_sd`` keeps a declaration's loose estimate (``reopen_rel``) from
-    being restored over the settled one.  Returns the state and the faults restored
-    ``(F, *runs)``.
+    estimate to every model (session 19).  On the step that declares another fault, a
+    fault that stays declared (``kept``) whose estimate ``est`` lies more than
+    ``restore_old`` of its sds ``est_sd``, and more than :data:`LEVEL_Z` of the level's
+    ``level_sd``, nearer nominal than its ``level`` (:func:`peak`) takes that level as its
+    mean in every model (the covariance is left; ``reopen_old`` widens it after the
+    hand-over).  ``level_sd`` keeps a declaration's loose estimate from being restored
+    over a settled one.  Returns the state and the faults restored ``(F, *runs)``.
     """
     drop = jnp.abs(level) - jnp.abs(est)
     back = kept & (drop > s.restore_old * est_sd) & (drop > LEVEL_Z * level_sd)

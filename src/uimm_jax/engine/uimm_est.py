@@ -39,7 +39,10 @@ retraction hypothesis from retracting it while another declared fault still grow
 its estimate away from nominal, and ``reopen_old`` re-opens the faults already declared
 when another is (docs/faults.md, "Session 15"); ``floor_z`` restarts a hypothesis that
 rests near its floor, unable to follow its fault, while the declared faults have settled
-(docs/faults.md, "Session 16").  Since session 11 the defaults are the
+(docs/faults.md, "Session 16"); ``settle_up`` and ``restore_old`` (off by default) act
+against a new fault's onset absorbed by a declared one (session 19:
+benchmarks/results/faults_unknown_size/session19_absorb/README.md).  Since session 11
+the defaults are the
 settings "S10a" of docs/faults.md (all of these on but ``post_gap``; ``post_floor_means``
 is per fault, so it is empty by default and set by the actuator's scenario files;
 :class:`EstSettings`).

@@ -224,12 +224,13 @@ class EstSettings(NamedTuple):
         settle_up: with ``settle_move``, on the step a declared fault settles, an anchor
             nearer nominal than the estimate by at most this many of its sds comes up to
             it, so that the sd's collapse does not re-open the walk of a fault that did
-            not grow (see ``_est_rules.settle_up``; docs/faults.md, "Session 19";
-            standard deviations; 0: off, the default).
+            not grow (see ``_est_rules.settle_up``; session 19, its README in
+            benchmarks/results/faults_unknown_size/session19_absorb; standard
+            deviations; 0: off, the default).
         restore_old: on a declaration, a fault that stays declared whose estimate lies
             more than this many of its sds nearer nominal than its level at its last
             growth (``EstState.level``) takes that level back, in every model (see
-            ``_est_rules.restore``; docs/faults.md, "Session 19"; 0: off, the default).
+            ``_est_rules.restore``; session 19; 0: off, the default).
     """
 
     walk: float = 1e-3
