@@ -423,9 +423,10 @@ def peak(s: EstSettings, fresh_decl, est, est_sd, since, start, anchor, level, l
 
     Model 0's estimate on its declaration, then the anchor's high-water mark: the anchor
     whenever it moves beyond the level, away from nominal (:func:`moved`'s growth,
-    ``settle_up``, ``settle_creep``); and on the step the fault settles, an anchor that
-    ``settle_low`` brought down (a declaration above the truth).  A move towards nominal
-    by :func:`moved` leaves the level.  ``start`` is the anchor at the step's start.
+    ``settle_up``, ``settle_creep``); and on the step the fault settles, an anchor brought
+    down (by ``settle_low``: a declaration above the truth; or by a move on that step).
+    Any other move towards nominal leaves the level.  ``start`` is the anchor at the
+    step's start.
     """
     high = jnp.abs(anchor) > jnp.abs(level)
     low = (since == s.settle_steps) & (jnp.abs(anchor) < jnp.abs(start)) if s.settle_low else False
