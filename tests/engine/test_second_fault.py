@@ -416,7 +416,7 @@ def test_restore_old_gives_a_kept_fault_its_level_back_only_on_a_clear_drop():
     from uimm_jax.engine.imm import IMMState
     from uimm_jax.engine.uimm_est import EstSettings
 
-    s = EstSettings(settle_steps=100, restore_old=10.0)
+    s = EstSettings(settle_steps=100, restore_old=10.0, restore_steps=50)
     # peak, runs: declared now, anchor raised above the level, anchor lowered by a move,
     # anchor lowered on the settle step (settle_low), anchor raised but below the level
     fresh = jnp.asarray([[True, False, False, False, False]])
@@ -431,24 +431,32 @@ def test_restore_old_gives_a_kept_fault_its_level_back_only_on_a_clear_drop():
     np.testing.assert_allclose(lv, [[1.5, 2.1, 2.0, 1.7, 2.0]])
     np.testing.assert_allclose(lsd, [[0.3, 0.01, 0.02, 0.004, 0.02]])
     # restore, runs: a clear drop, a drop of 5 sds only, a drop within 2 sds of a loose
-    # level, a fault not kept, a negative magnitude's clear drop
-    n, F, M, R = 3, 1, 2, 5
+    # level, a fault not kept, a negative magnitude's clear drop, a clear drop from a
+    # level left 50 steps ago
+    n, F, M, R = 3, 1, 2, 6
     rng = np.random.default_rng(1)
     mean = rng.normal(size=(n + F, M, R))
     a = rng.normal(size=(n + F, n + F, M, R))
     cov = np.einsum("ikmr,jkmr->ijmr", a, a)
     st = IMMState(jnp.asarray(mean), jnp.asarray(cov), jnp.zeros((M, R)))
-    kept = np.asarray([[True, True, True, False, True]])
-    est = np.asarray([[1.6, 1.97, 1.8, 1.6, -1.6]])
+    kept = np.asarray([[True, True, True, False, True, True]])
+    est = np.asarray([[1.6, 1.97, 1.8, 1.6, -1.6, 1.6]])
     est_sd = np.full((1, R), 0.006)
-    level = np.asarray([[2.0, 2.0, 2.0, 2.0, -2.0]])
-    level_sd = np.asarray([[0.01, 0.01, 0.1, 0.01, 0.01]])
-    args = (jnp.asarray(v) for v in (kept, est, est_sd, level, level_sd))
+    level = np.asarray([[2.0, 2.0, 2.0, 2.0, -2.0, 2.0]])
+    level_sd = np.asarray([[0.01, 0.01, 0.1, 0.01, 0.01, 0.01]])
+    left = np.asarray([[49, 0, 0, 0, 3, 50]], np.int32)
+    args = (jnp.asarray(v) for v in (kept, est, est_sd, level, level_sd, left))
     out, back = rules.restore(s, n, st, *args)
     drop = np.abs(level) - np.abs(est)
-    want_back = kept & (drop > 10.0 * est_sd) & (drop > rules.LEVEL_Z * level_sd)
+    want_back = kept & (drop > 10.0 * est_sd) & (drop > rules.LEVEL_Z * level_sd) & (left < 50)
     np.testing.assert_array_equal(back, want_back)
-    np.testing.assert_array_equal(want_back, [[True, False, False, False, True]])
+    np.testing.assert_array_equal(want_back, [[True, False, False, False, True, False]])
+    # level_left: 0 while the estimate is within LEVEL_Z sds of its level, else counting
+    # up to restore_steps + 1
+    got = rules.level_left(s, *(jnp.asarray(v) for v in (est, est_sd, level, level_sd, left)))
+    near = drop <= rules.LEVEL_Z * np.maximum(est_sd, level_sd)
+    np.testing.assert_array_equal(got, np.where(near, 0, np.minimum(left + 1, 51)))
+    np.testing.assert_array_equal(got, [[50, 1, 0, 1, 4, 51]])
     want = mean.copy()
     want[n:] = np.where(want_back[:, None], level[:, None], mean[n:])
     np.testing.assert_array_equal(out.mean, want)

@@ -195,6 +195,7 @@ class UIMMEstDiagnoser(Diagnoser):
             jnp.zeros((F,) + tuple(runs), jnp.int32),
             jnp.zeros((F,) + tuple(runs), dtype),
             jnp.zeros((F,) + tuple(runs), dtype),
+            jnp.zeros((F,) + tuple(runs), jnp.int32),
         )
 
     def step(
@@ -279,8 +280,10 @@ class UIMMEstDiagnoser(Diagnoser):
         fresh_decl = new_declared & ~declared
         kept = new_declared & declared & jnp.any(fresh_decl, axis=0)
         anchor, fresh, level, level_sd = state.anchor, state.fresh, state.level, state.level_sd
+        left = state.left
         if s.restore_old:  # a kept fault pulled towards nominal by the new one's onset
-            imm_state, back = rules.restore(s, n, imm_state, kept, est, est_sd, level, level_sd)
+            lv = (level, level_sd, left)
+            imm_state, back = rules.restore(s, n, imm_state, kept, est, est_sd, *lv)
             anchor = jnp.where(back, level, anchor)
         imm_state, cache = self._handover(imm_state, state.cache, winner, changed, new_declared)
         imm_state = rules.reopen(s, n, imm_state, fresh_decl, kept)
@@ -303,6 +306,7 @@ class UIMMEstDiagnoser(Diagnoser):
             level, level_sd = rules.peak(
                 s, fresh_decl, est, est_sd, since, start, anchor, level, level_sd
             )
+            left = rules.level_left(s, est, est_sd, level, level_sd, left)
         if s.walk_settled:  # since: a declared fault's age; a retracted one is due again
             since = jnp.where(new_declared & ~declared, 0, since)
             since = jnp.where(retract, rules.gap_cap(s), since).astype(jnp.int32)
@@ -320,6 +324,7 @@ class UIMMEstDiagnoser(Diagnoser):
             rise,
             level,
             level_sd,
+            left,
         )
         recognised = jnp.where(any_ret, new_declared, dec.candidate_set)
         step_info = info._replace(

@@ -231,6 +231,9 @@ class EstSettings(NamedTuple):
             more than this many of its sds nearer nominal than its level at its last
             growth (``EstState.level``) takes that level back, in every model (see
             ``_est_rules.restore``; session 19; 0: off, the default).
+        restore_steps: with ``restore_old``, a level is restored only if the estimate
+            left it (``LEVEL_Z`` sds) less than this many steps ago (see
+            ``_est_rules.level_left``; steps; 0: off, any time).
     """
 
     walk: float = 1e-3
@@ -273,6 +276,7 @@ class EstSettings(NamedTuple):
     floor_z: float = 2.0
     settle_up: float = 0.0
     restore_old: float = 0.0
+    restore_steps: int = 0
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -314,6 +318,7 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "floor_z": (0.0, False, "standard deviations; 0: off"),
     "settle_up": (0.0, False, "standard deviations; 0: off"),
     "restore_old": (0.0, False, "standard deviations; 0: off"),
+    "restore_steps": (0, False, "steps; 0: off"),
 }
 _HIGH = {"restart_below": 1.0, "tangent_order": 12}
 
@@ -444,7 +449,7 @@ def est_value_from_text(name: str, text: str) -> Any:
 
 COUNTED_SETTINGS = ("restart_gap", "floor_gap", "post_gap", "settle_steps", "post_floor_gap")
 COUNTED_SETTINGS += ("retract_hold", "low_floor_age", "retract_young", "settle_creep")
-COUNTED_SETTINGS += ("retract_rise",)
+COUNTED_SETTINGS += ("retract_rise", "restore_steps")
 """The settings counted in steps, which :func:`settings_at_dt` converts."""
 
 
@@ -517,8 +522,9 @@ class EstState(NamedTuple):
             false while it is off).
         rise: ``(F, *runs)`` int32, steps each declared fault's retraction hypothesis has
             stayed at or above ``RISE_LEVEL`` (``retract_rise``; zeros while it is off).
-        level: ``(F, *runs)`` each declared fault's level (``_est_rules.peak``), and
-            ``level_sd`` its sd then (``restore_old``; zeros while it is off).
+        level: ``(F, *runs)`` each declared fault's level (``_est_rules.peak``),
+            ``level_sd`` its sd then, ``left`` (int32) the steps since the estimate was
+            last near it (``_est_rules.level_left``; ``restore_old``; zeros while off).
     """
 
     imm: IMMState
@@ -534,6 +540,7 @@ class EstState(NamedTuple):
     rise: jax.Array
     level: jax.Array
     level_sd: jax.Array
+    left: jax.Array
 
 
 class EstInfo(NamedTuple):
