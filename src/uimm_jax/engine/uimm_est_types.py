@@ -458,7 +458,7 @@ def settings_at_dt(settings: EstSettings, dt: Any) -> EstSettings:
 
     Each setting counted in steps (``restart_gap``, ``floor_gap``, ``post_gap``,
     ``settle_steps``, ``post_floor_gap``, ``retract_hold``, ``low_floor_age``,
-    ``retract_young``, ``settle_creep``, ``retract_rise``) becomes
+    ``retract_young``, ``settle_creep``, ``retract_rise``, ``restore_steps``) becomes
     ``round(count * steps_dt / dt)`` samples (halves up), at least 1 unless it was 0 (off),
     and ``steps_dt`` becomes ``dt`` (the result is its own conversion at ``dt``).
     With ``steps_dt == dt`` or ``steps_dt = 0`` it returns ``settings`` itself: the same
