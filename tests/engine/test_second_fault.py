@@ -380,31 +380,6 @@ def test_floor_z_restarts_a_hypothesis_resting_near_its_floor_only_while_a_fault
     assert restarted[2.0, 1000, 100] == [False] * 4  # not while air in oil still grows
 
 
-def test_settle_up_raises_only_an_anchor_the_settling_fault_did_not_outgrow():
-    """``settle_up`` (session 19): on the step a declared fault settles (age
-    ``settle_steps``), an anchor nearer nominal than the estimate by at most ``settle_up``
-    of its sd comes up to the estimate; a larger gap (the fault grew), an anchor beyond the
-    estimate, a fault not settling on this step and an undeclared one are left alone."""
-    import jax.numpy as jnp
-
-    from uimm_jax.engine.uimm_est import EstSettings
-
-    s = EstSettings(walk_settled=3e-5, settle_steps=100, settle_move=10.0, settle_up=2.0)
-    # runs: gap 1.5 sd, gap 3 sd, anchor above the estimate, settled earlier, still young,
-    # negative magnitude with a gap of 1 sd, not declared
-    declared = jnp.asarray([[True] * 6 + [False]])
-    since = jnp.asarray([[100, 100, 100, 150, 50, 100, 100]], jnp.int32)
-    anchor = jnp.asarray([[1.9, 1.9, 2.1, 1.9, 1.9, -1.9, 1.9]])
-    est = jnp.asarray([[1.96, 2.02, 2.0, 1.96, 1.96, -1.94, 1.96]])
-    sd = jnp.full((1, 7), 0.04)
-    got = np.asarray(rules.settle_up(s, declared, est, sd, since, anchor))
-    a, e, d, k = (np.asarray(v) for v in (anchor, est, declared, since))
-    gap = np.abs(e) - np.abs(a)
-    want = np.where(d & (k == 100) & (gap > 0) & (gap <= 2.0 * 0.04), e, a)
-    np.testing.assert_allclose(got, want)
-    np.testing.assert_allclose(got, [[1.96, 1.9, 2.1, 1.9, 1.9, -1.94, 1.9]])
-
-
 def test_restore_old_gives_a_kept_fault_its_level_back_only_on_a_clear_drop():
     """``restore_old`` (session 19): ``peak`` keeps each declared fault's level (the
     declaration's estimate, then the anchor's high-water mark, or an anchor brought down on

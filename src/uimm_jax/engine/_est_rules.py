@@ -111,25 +111,6 @@ def settle_low(s: EstSettings, declared, est, since, anchor, fresh):
     return jnp.where(down, est, anchor), fresh & ~down
 
 
-def settle_up(s: EstSettings, declared, est, est_sd, since, anchor):
-    """``settle_up``: a settling fault that did not grow in its last fast walk is settled.
-
-    :func:`moved` re-anchors only on moves of ``settle_move`` sds, so during a fast walk
-    (sd 0.04 for valve wear at 2) the anchor is left up to 0.4 behind; when the walk
-    settles its sd collapses (to 0.004) and that old distance restarts the age (the fast
-    walk) although the fault no longer grows: sim 2's valve wear re-opened 0.2-0.5 s after
-    its ramp ended, and air in oil's onset in that walk was absorbed (session 19, its
-    README in benchmarks/results/faults_unknown_size/session19_absorb).  Here, on the step
-    a declared fault settles (``since == settle_steps``), an anchor nearer nominal than
-    the estimate by at most ``settle_up`` of its sd ``est_sd`` comes up to the estimate.
-    A larger distance (the fault grew in that walk) leaves the anchor, as before.  Returns
-    the new ``anchor``.
-    """
-    gap = jnp.abs(est) - jnp.abs(anchor)
-    up = declared & (since == s.settle_steps) & (gap > 0) & (gap <= s.settle_up * est_sd)
-    return jnp.where(up, est, anchor)
-
-
 def settle_creep(s: EstSettings, declared, est, since, anchor):
     """``settle_creep``: a settled fault's anchor follows its estimate away from nominal.
 
@@ -423,7 +404,7 @@ def peak(s: EstSettings, fresh_decl, est, est_sd, since, start, anchor, level, l
 
     Model 0's estimate on its declaration, then the anchor's high-water mark: the anchor
     whenever it moves beyond the level, away from nominal (:func:`moved`'s growth,
-    ``settle_up``, ``settle_creep``); and on the step the fault settles, an anchor brought
+    ``settle_creep``); and on the step the fault settles, an anchor brought
     down (by ``settle_low``: a declaration above the truth; or by a move on that step).
     Any other move towards nominal leaves the level.  ``start`` is the anchor at the
     step's start.

@@ -39,8 +39,8 @@ retraction hypothesis from retracting it while another declared fault still grow
 its estimate away from nominal, and ``reopen_old`` re-opens the faults already declared
 when another is (docs/faults.md, "Session 15"); ``floor_z`` restarts a hypothesis that
 rests near its floor, unable to follow its fault, while the declared faults have settled
-(docs/faults.md, "Session 16"); ``settle_up`` and ``restore_old`` (off by default) act
-against a new fault's onset absorbed by a declared one (session 19:
+(docs/faults.md, "Session 16"); ``restore_old`` and ``restore_steps`` (off by default)
+act against a new fault's onset absorbed by a declared one (session 19:
 benchmarks/results/faults_unknown_size/session19_absorb/README.md).  Since session 11
 the defaults are the
 settings "S10a" of docs/faults.md (all of these on but ``post_gap``; ``post_floor_means``
@@ -291,9 +291,6 @@ class UIMMEstDiagnoser(Diagnoser):
         if rules.growth_ages(s):  # a fault still growing is not settled
             if s.settle_low:  # a declaration's anchor comes down to a settled estimate
                 anchor, fresh = rules.settle_low(s, declared, est, since, anchor, fresh)
-            if s.settle_up:  # a fault that settles without having grown is settled
-                up = rules.settle_up(s, declared, est, est_sd, since, anchor)
-                anchor, fresh = up, fresh & (up == anchor)
             old = anchor
             since, anchor = rules.moved(s, declared, est, est_sd, since, anchor)
             anchor = jnp.where(new_declared & ~declared, est, anchor)

@@ -221,12 +221,6 @@ class EstSettings(NamedTuple):
             ``_est_rules.reset_unused``; docs/faults.md, "Session 16": sim 2 with air in
             oil first, 21 and 39 false runs of 64 at 0.5 and 1 down to 0; standard
             deviations; 0: off; 2, the default since session 16).
-        settle_up: with ``settle_move``, on the step a declared fault settles, an anchor
-            nearer nominal than the estimate by at most this many of its sds comes up to
-            it, so that the sd's collapse does not re-open the walk of a fault that did
-            not grow (see ``_est_rules.settle_up``; session 19, its README in
-            benchmarks/results/faults_unknown_size/session19_absorb; standard
-            deviations; 0: off, the default).
         restore_old: on a declaration, a fault that stays declared whose estimate lies
             more than this many of its sds nearer nominal than its level at its last
             growth (``EstState.level``) takes that level back, in every model (see
@@ -274,7 +268,6 @@ class EstSettings(NamedTuple):
     reopen_old: float = 0.01
     retract_rise: int = 1000
     floor_z: float = 2.0
-    settle_up: float = 0.0
     restore_old: float = 0.0
     restore_steps: int = 0
 
@@ -316,7 +309,6 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "reopen_old": (0.0, False, "a fraction of the estimate; 0: off"),
     "retract_rise": (0, False, "steps; 0: off"),
     "floor_z": (0.0, False, "standard deviations; 0: off"),
-    "settle_up": (0.0, False, "standard deviations; 0: off"),
     "restore_old": (0.0, False, "standard deviations; 0: off"),
     "restore_steps": (0, False, "steps; 0: off"),
 }
