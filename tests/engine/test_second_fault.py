@@ -378,3 +378,61 @@ def test_floor_z_restarts_a_hypothesis_resting_near_its_floor_only_while_a_fault
     assert restarted[2.0, 1000, 5000] == [True, False, False, False]  # 0.049 <= 0.02 + 2 x 0.038
     assert restarted[2.0, 10, 5000] == [False] * 4  # not before post_floor_gap
     assert restarted[2.0, 1000, 100] == [False] * 4  # not while air in oil still grows
+
+
+def test_restore_old_gives_a_kept_fault_its_level_back_only_on_a_clear_drop():
+    """``restore_old`` (session 19): ``peak`` keeps each declared fault's level (the
+    declaration's estimate, then the anchor's high-water mark, or an anchor brought down on
+    the settle step) with its sd then; on a declaration, ``restore`` sets a kept fault's
+    mean to its level in every model when the estimate lies more than ``restore_old`` of
+    its sds and ``LEVEL_Z`` of the level's sds nearer nominal; nothing else moves."""
+    import jax.numpy as jnp
+
+    from uimm_jax.engine.imm import IMMState
+    from uimm_jax.engine.uimm_est import EstSettings
+
+    s = EstSettings(settle_steps=100, restore_old=10.0, restore_steps=50)
+    # peak, runs: declared now, anchor raised above the level, anchor lowered by a move,
+    # anchor lowered on the settle step (settle_low), anchor raised but below the level
+    fresh = jnp.asarray([[True, False, False, False, False]])
+    est = jnp.asarray([[1.5, 2.1, 1.6, 1.7, 1.8]])
+    sd = jnp.asarray([[0.3, 0.01, 0.005, 0.004, 0.02]])
+    since = jnp.asarray([[0, 0, 500, 100, 0]], jnp.int32)
+    start = jnp.asarray([[0.0, 1.9, 2.0, 1.9, 1.5]])
+    anchor = jnp.asarray([[1.5, 2.1, 1.6, 1.7, 1.8]])
+    level = jnp.asarray([[0.0, 2.0, 2.0, 1.9, 2.0]])
+    level_sd = jnp.asarray([[0.0, 0.02, 0.02, 0.2, 0.02]])
+    lv, lsd = rules.peak(s, fresh, est, sd, since, start, anchor, level, level_sd)
+    np.testing.assert_allclose(lv, [[1.5, 2.1, 2.0, 1.7, 2.0]])
+    np.testing.assert_allclose(lsd, [[0.3, 0.01, 0.02, 0.004, 0.02]])
+    # restore, runs: a clear drop, a drop of 5 sds only, a drop within 2 sds of a loose
+    # level, a fault not kept, a negative magnitude's clear drop, a clear drop from a
+    # level left 50 steps ago
+    n, F, M, R = 3, 1, 2, 6
+    rng = np.random.default_rng(1)
+    mean = rng.normal(size=(n + F, M, R))
+    a = rng.normal(size=(n + F, n + F, M, R))
+    cov = np.einsum("ikmr,jkmr->ijmr", a, a)
+    st = IMMState(jnp.asarray(mean), jnp.asarray(cov), jnp.zeros((M, R)))
+    kept = np.asarray([[True, True, True, False, True, True]])
+    est = np.asarray([[1.6, 1.97, 1.8, 1.6, -1.6, 1.6]])
+    est_sd = np.full((1, R), 0.006)
+    level = np.asarray([[2.0, 2.0, 2.0, 2.0, -2.0, 2.0]])
+    level_sd = np.asarray([[0.01, 0.01, 0.1, 0.01, 0.01, 0.01]])
+    left = np.asarray([[49, 0, 0, 0, 3, 50]], np.int32)
+    args = (jnp.asarray(v) for v in (kept, est, est_sd, level, level_sd, left))
+    out, back = rules.restore(s, n, st, *args)
+    drop = np.abs(level) - np.abs(est)
+    want_back = kept & (drop > 10.0 * est_sd) & (drop > rules.LEVEL_Z * level_sd) & (left < 50)
+    np.testing.assert_array_equal(back, want_back)
+    np.testing.assert_array_equal(want_back, [[True, False, False, False, True, False]])
+    # level_left: 0 while the estimate is within LEVEL_Z sds of its level, else counting
+    # up to restore_steps + 1
+    got = rules.level_left(s, *(jnp.asarray(v) for v in (est, est_sd, level, level_sd, left)))
+    near = drop <= rules.LEVEL_Z * np.maximum(est_sd, level_sd)
+    np.testing.assert_array_equal(got, np.where(near, 0, np.minimum(left + 1, 51)))
+    np.testing.assert_array_equal(got, [[50, 1, 0, 1, 4, 51]])
+    want = mean.copy()
+    want[n:] = np.where(want_back[:, None], level[:, None], mean[n:])
+    np.testing.assert_array_equal(out.mean, want)
+    np.testing.assert_array_equal(out.cov, cov)

@@ -445,3 +445,58 @@ def reopen(s: EstSettings, n: int, st: IMMState, new: jax.Array, kept: jax.Array
     target = (rel[:, None] * st.mean[n:]) ** 2
     add = jnp.where((new | kept)[:, None], jnp.maximum(target - mag_var(st.cov, n), 0.0), 0.0)
     return st._replace(cov=add_mag_var(st.cov, n, add))
+
+
+def peak(s: EstSettings, fresh_decl, est, est_sd, since, start, anchor, level, level_sd):
+    """``restore_old``: each declared fault's level, ``(F, *runs)``, and its sd then.
+
+    Model 0's estimate on its declaration, then the anchor's high-water mark: the anchor
+    whenever it moves beyond the level, away from nominal (:func:`moved`'s growth,
+    ``settle_creep``); and on the step the fault settles, an anchor brought
+    down (by ``settle_low``: a declaration above the truth; or by a move on that step).
+    Any other move towards nominal leaves the level.  ``start`` is the anchor at the
+    step's start.
+    """
+    high = jnp.abs(anchor) > jnp.abs(level)
+    low = (since == s.settle_steps) & (jnp.abs(anchor) < jnp.abs(start)) if s.settle_low else False
+    take = fresh_decl | ((high | low) & (anchor != start))
+    value = jnp.where(fresh_decl, est, anchor)
+    return jnp.where(take, value, level), jnp.where(take, est_sd, level_sd)
+
+
+LEVEL_Z = 2.0
+"""``restore_old``: a level is restored only if the estimate lies this many of its sds below."""
+
+
+def level_left(s: EstSettings, est, est_sd, level, level_sd, left) -> jax.Array:
+    """``restore_old``: steps since each estimate was last near its level (``(F, *runs)``).
+
+    Near: within :data:`LEVEL_Z` sds (the larger of ``est_sd`` and ``level_sd``) of it
+    (counted up to ``restore_steps + 1``).  A level the estimate left long ago (a
+    ramp's overshoot, settled since below it) is not restored (:func:`restore`).
+    """
+    near = jnp.abs(level) - jnp.abs(est) <= LEVEL_Z * jnp.maximum(est_sd, level_sd)
+    return jnp.where(near, 0, jnp.minimum(left + 1, s.restore_steps + 1)).astype(jnp.int32)
+
+
+def restore(s: EstSettings, n: int, st: IMMState, kept, est, est_sd, level, level_sd, left):
+    """``restore_old``: a kept fault pulled towards nominal gets its level back, every model.
+
+    While a new fault's hypothesis rises, model 0 explains its onset by the declared
+    faults, most where a declared fault still walks fast (sim 2's valve wear at 2, 2.01 ->
+    1.68 in 70 ms as air in oil began, sd 0.04 -> 0.005), and the hand-over passes that
+    estimate to every model (session 19).  On the step that declares another fault, a
+    fault that stays declared (``kept``) whose estimate ``est`` lies more than
+    ``restore_old`` of its sds ``est_sd``, and more than :data:`LEVEL_Z` of the level's
+    ``level_sd``, nearer nominal than its ``level`` (:func:`peak`), and that left it less
+    than ``restore_steps`` ago (``left``, :func:`level_left`), takes that level as its
+    mean in every model (the covariance is left; ``reopen_old`` widens it after the
+    hand-over).  ``level_sd`` keeps a declaration's loose estimate from being restored
+    over a settled one.  Returns the state and the faults restored ``(F, *runs)``.
+    """
+    drop = jnp.abs(level) - jnp.abs(est)
+    back = kept & (drop > s.restore_old * est_sd) & (drop > LEVEL_Z * level_sd)
+    if s.restore_steps:
+        back = back & (left < s.restore_steps)
+    mean = st.mean.at[n:].set(jnp.where(back[:, None], level[:, None], st.mean[n:]))
+    return st._replace(mean=mean), back

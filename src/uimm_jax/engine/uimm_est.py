@@ -39,7 +39,10 @@ retraction hypothesis from retracting it while another declared fault still grow
 its estimate away from nominal, and ``reopen_old`` re-opens the faults already declared
 when another is (docs/faults.md, "Session 15"); ``floor_z`` restarts a hypothesis that
 rests near its floor, unable to follow its fault, while the declared faults have settled
-(docs/faults.md, "Session 16").  Since session 11 the defaults are the
+(docs/faults.md, "Session 16"); ``restore_old`` and ``restore_steps`` (off by default)
+act against a new fault's onset absorbed by a declared one (session 19:
+benchmarks/results/faults_unknown_size/session19_absorb/README.md).  Since session 11
+the defaults are the
 settings "S10a" of docs/faults.md (all of these on but ``post_gap``; ``post_floor_means``
 is per fault, so it is empty by default and set by the actuator's scenario files;
 :class:`EstSettings`).
@@ -191,6 +194,9 @@ class UIMMEstDiagnoser(Diagnoser):
             jnp.zeros((F,) + tuple(runs), bool),
             jnp.zeros((F,) + tuple(runs), jnp.int32),
             jnp.zeros((F,) + tuple(runs), dtype),
+            jnp.zeros((F,) + tuple(runs), dtype),
+            jnp.zeros((F,) + tuple(runs), dtype),
+            jnp.zeros((F,) + tuple(runs), jnp.int32),
         )
 
     def step(
@@ -238,8 +244,8 @@ class UIMMEstDiagnoser(Diagnoser):
         est_sd = jnp.sqrt(jnp.maximum(jnp.sum(jnp.where(pick, var, 0.0), axis=1), 0.0))
         if s.drift_walk:  # the step's move of each estimate, from after the rules
             before = jnp.sum(jnp.where(pick, imm0.mean[n:], 0.0), axis=1)
-            fresh = ~declared & (since < rules.DRIFT_WAIT * s.drift_steps)
-            drift = rules.drift_update(s, drift, est - before, fresh)
+            young = ~declared & (since < rules.DRIFT_WAIT * s.drift_steps)
+            drift = rules.drift_update(s, drift, est - before, young)
 
         def cand_set(c):
             full = self._candidate_set(c, declared)
@@ -279,11 +285,17 @@ class UIMMEstDiagnoser(Diagnoser):
         winner = jnp.where(any_ret, first, dec.candidate)
         changed = dec.declared_now | any_ret
         new_declared = jnp.where(retract, False, dec.declared)
-        imm_state, cache = self._handover(imm_state, state.cache, winner, changed, new_declared)
         fresh_decl = new_declared & ~declared
         kept = new_declared & declared & jnp.any(fresh_decl, axis=0)
+        anchor, fresh, level, level_sd = state.anchor, state.fresh, state.level, state.level_sd
+        left = state.left
+        if s.restore_old:  # a kept fault pulled towards nominal by the new one's onset
+            lv = (level, level_sd, left)
+            imm_state, back = rules.restore(s, n, imm_state, kept, est, est_sd, *lv)
+            anchor = jnp.where(back, level, anchor)
+        imm_state, cache = self._handover(imm_state, state.cache, winner, changed, new_declared)
         imm_state = rules.reopen(s, n, imm_state, fresh_decl, kept)
-        anchor, fresh = state.anchor, state.fresh
+        start = anchor
         if rules.growth_ages(s):  # a fault still growing is not settled
             if s.settle_low:  # a declaration's anchor comes down to a settled estimate
                 anchor, fresh = rules.settle_low(s, declared, est, since, anchor, fresh)
@@ -294,6 +306,12 @@ class UIMMEstDiagnoser(Diagnoser):
                 fresh = jnp.where(anchor != old, False, fresh) | (new_declared & ~declared)
             if s.settle_creep:  # a settled anchor follows its estimate away from nominal
                 anchor = rules.settle_creep(s, declared, est, since, anchor)
+        if s.restore_old:  # a restored fault keeps its level as anchor, and its age
+            anchor = jnp.where(back, level, anchor)
+            level, level_sd = rules.peak(
+                s, fresh_decl, est, est_sd, since, start, anchor, level, level_sd
+            )
+            left = rules.level_left(s, est, est_sd, level, level_sd, left)
         if s.walk_settled:  # since: a declared fault's age; a retracted one is due again
             since = jnp.where(new_declared & ~declared, 0, since)
             since = jnp.where(retract, rules.gap_cap(s), since).astype(jnp.int32)
@@ -310,6 +328,9 @@ class UIMMEstDiagnoser(Diagnoser):
             fresh,
             rise,
             drift,
+            level,
+            level_sd,
+            left,
         )
         recognised = jnp.where(any_ret, new_declared, dec.candidate_set)
         step_info = info._replace(

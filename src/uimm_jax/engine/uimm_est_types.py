@@ -228,6 +228,13 @@ class EstSettings(NamedTuple):
             falls back once the fault stops growing (see ``_est_rules.drift_walk``;
             docs/faults.md, "Ramps", "Session 19"; 0: off).
         drift_steps: the steps of that average (an exponential one).
+        restore_old: on a declaration, a fault that stays declared whose estimate lies
+            more than this many of its sds nearer nominal than its level at its last
+            growth (``EstState.level``) takes that level back, in every model (see
+            ``_est_rules.restore``; session 19; 0: off, the default).
+        restore_steps: with ``restore_old``, a level is restored only if the estimate
+            left it (``LEVEL_Z`` sds) less than this many steps ago (see
+            ``_est_rules.level_left``; steps; 0: off, any time).
     """
 
     walk: float = 1e-3
@@ -270,6 +277,8 @@ class EstSettings(NamedTuple):
     floor_z: float = 2.0
     drift_walk: float = 0.0
     drift_steps: int = 20
+    restore_old: float = 0.0
+    restore_steps: int = 0
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -311,6 +320,8 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "floor_z": (0.0, False, "standard deviations; 0: off"),
     "drift_walk": (0.0, False, "a multiple of the estimate's drift per step; 0: off"),
     "drift_steps": (1, False, _STEPS),
+    "restore_old": (0.0, False, "standard deviations; 0: off"),
+    "restore_steps": (0, False, "steps; 0: off"),
 }
 _HIGH = {"restart_below": 1.0, "tangent_order": 12}
 
@@ -441,7 +452,7 @@ def est_value_from_text(name: str, text: str) -> Any:
 
 COUNTED_SETTINGS = ("restart_gap", "floor_gap", "post_gap", "settle_steps", "post_floor_gap")
 COUNTED_SETTINGS += ("retract_hold", "low_floor_age", "retract_young", "settle_creep")
-COUNTED_SETTINGS += ("retract_rise", "drift_steps")
+COUNTED_SETTINGS += ("retract_rise", "drift_steps", "restore_steps")
 """The settings counted in steps, which :func:`settings_at_dt` converts."""
 
 
@@ -450,7 +461,7 @@ def settings_at_dt(settings: EstSettings, dt: Any) -> EstSettings:
 
     Each setting counted in steps (``restart_gap``, ``floor_gap``, ``post_gap``,
     ``settle_steps``, ``post_floor_gap``, ``retract_hold``, ``low_floor_age``,
-    ``retract_young``, ``settle_creep``, ``retract_rise``) becomes
+    ``retract_young``, ``settle_creep``, ``retract_rise``, ``restore_steps``) becomes
     ``round(count * steps_dt / dt)`` samples (halves up), at least 1 unless it was 0 (off),
     and ``steps_dt`` becomes ``dt`` (the result is its own conversion at ``dt``).
     With ``steps_dt == dt`` or ``steps_dt = 0`` it returns ``settings`` itself: the same
@@ -516,6 +527,9 @@ class EstState(NamedTuple):
             stayed at or above ``RISE_LEVEL`` (``retract_rise``; zeros while it is off).
         drift: ``(F, *runs)`` each fault's estimate's change per step, averaged over
             ``drift_steps`` (``drift_walk``; zeros while it is off).
+        level: ``(F, *runs)`` each declared fault's level (``_est_rules.peak``),
+            ``level_sd`` its sd then, ``left`` (int32) the steps since the estimate was
+            last near it (``_est_rules.level_left``; ``restore_old``; zeros while off).
     """
 
     imm: IMMState
@@ -530,6 +544,9 @@ class EstState(NamedTuple):
     fresh: jax.Array
     rise: jax.Array
     drift: jax.Array
+    level: jax.Array
+    level_sd: jax.Array
+    left: jax.Array
 
 
 class EstInfo(NamedTuple):
