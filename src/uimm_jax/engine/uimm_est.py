@@ -39,10 +39,10 @@ retraction hypothesis from retracting it while another declared fault still grow
 its estimate away from nominal, and ``reopen_old`` re-opens the faults already declared
 when another is (docs/faults.md, "Session 15"); ``floor_z`` restarts a hypothesis that
 rests near its floor, unable to follow its fault, while the declared faults have settled
-(docs/faults.md, "Session 16"); ``restore_old`` and ``restore_steps`` (off by default)
-act against a new fault's onset absorbed by a declared one (session 19:
-benchmarks/results/faults_unknown_size/session19_absorb/README.md).  Since session 11
-the defaults are the
+(docs/faults.md, "Session 16"); ``restore_old`` and ``restore_steps`` (the defaults
+since session 19) act against a new fault's onset absorbed by a declared one, and
+``drift_walk`` (selectable, off) lets a walk follow a fast-growing estimate
+(docs/faults.md, "Ramps", "Session 19").  Since session 11 the defaults are the
 settings "S10a" of docs/faults.md (all of these on but ``post_gap``; ``post_floor_means``
 is per fault, so it is empty by default and set by the actuator's scenario files;
 :class:`EstSettings`).
