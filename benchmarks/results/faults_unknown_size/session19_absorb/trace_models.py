@@ -5,7 +5,8 @@ python trace_models.py FILE RUN T0 T1 [--every K] [--set NAME=VALUE ...] [--npz 
 RUN is the sweep's run index (its noise key, ``run_keys(seed, 16)[RUN]``), so the run is
 the same as row RUN of ``uimm-jax sweep FILE --runs 16``.  Prints, every K samples from
 T0 to T1 and at every change of the declared set: the mode probabilities, each model's
-estimate (sd) of every magnitude, model 0's since/anchor, and the truth.
+estimate (sd) of every magnitude, model 0's since/anchor, the truth, and each fault's
+``EstState.drift`` (``drift_walk``; 1e-3 units, zeros while it is off).
 """
 
 import argparse
@@ -80,6 +81,7 @@ def go(state, us, ys):
             st2.anchor,
             st2.level,
             st2.level_sd,
+            st2.drift,
         )
         return st2, out
 
@@ -89,7 +91,7 @@ def go(state, us, ys):
 
 names = list(setup.table.names)
 tm = true_magnitudes(sc, names, N)
-KEYS = "mu mags sds decl since anchor level level_sd".split()
+KEYS = "mu mags sds decl since anchor level level_sd drift".split()
 if "," in a.run:
     for r in (int(v) for v in a.run.split(",")):
         out = go(setup.init_state, *truth(r))
@@ -112,7 +114,8 @@ for k in sorted(set(range(k0, k1, a.every)) | near):
     )
     print(
         f"{mark}t={(k + 1) * sc.dt:7.4f} D={decl[k]} mu={np.round(mu[k], 3)} "
-        f"since={z['since'][k]} anc={np.round(anchor[k], 3)} tr={np.round(tm[k], 3)}\n    {cells}"
+        f"since={z['since'][k]} anc={np.round(anchor[k], 3)} tr={np.round(tm[k], 3)} "
+        f"drift={np.round(z['drift'][k] * 1e3, 3)}\n    {cells}"
     )
 steps = [(round((k + 1) * sc.dt, 4), int(decl[k - 1]), int(decl[k])) for k in sorted(changes)]
 print("changes (t, D before, D after):", steps)
