@@ -1,11 +1,12 @@
 """One line per acceptance part from the JSON files of ``faults_unknown_size.py`` (session 17).
 
 Usage (repository root): ``python benchmarks/results/faults_unknown_size/acceptance_table.py
-TAG`` reads ``sizes``, ``ramps_1.0``, ``ramps_10.0`` (``TAG_s1`` and ``TAG_s2`` or
+TAG [FOLDER]`` reads ``sizes``, ``ramps_1.0``, ``ramps_10.0`` (``TAG_s1`` and ``TAG_s2`` or
 ``TAG``), ``intermittent`` and ``paper`` files of uimm-est at 64 runs with that tag and
 prints, per part: cells, runs with a false declaration, the lowest detection and isolation,
 the largest MARE and lowest 95 % coverage over faults and cells, wrong retractions, the
 median delays at magnitude 1 (abrupt), and the retraction delays of intermittent faults.
+``FOLDER`` (default: this one) is where the files are, e.g. ``session20_pin``.
 """
 
 import json
@@ -15,12 +16,12 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 
 
-def cells(part: str, tag: str) -> list[dict]:
+def cells(part: str, tag: str, where: Path = HERE) -> list[dict]:
     names = [f"{part}_uimm-est_64{tag}.json"]
     names += [f"{part}_uimm-est_64{tag}_s{s}.json" for s in (1, 2)]
     out = []
     for name in names:
-        path = HERE / name
+        path = where / name
         if path.is_file():
             data = json.loads(path.read_text())
             out += [dict(c, sim=k) for k, v in data.items() if k.startswith("sim") for c in v]
@@ -61,8 +62,9 @@ def line(part: str, cs: list[dict]) -> str:
 
 def main() -> None:
     tag = sys.argv[1] if len(sys.argv) > 1 else ""
+    where = HERE / sys.argv[2] if len(sys.argv) > 2 else HERE
     for part in ("sizes", "ramps_1.0", "ramps_10.0", "intermittent", "paper"):
-        cs = cells(part, tag)
+        cs = cells(part, tag, where)
         print(line(part, cs) if cs else f"{part:12s} no file with tag {tag!r}")
 
 

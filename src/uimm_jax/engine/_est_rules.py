@@ -209,6 +209,22 @@ def own_slots(F: int, nd: int) -> np.ndarray:
     return own.reshape((F, F + 1) + (1,) * nd)
 
 
+def pinned(use: jax.Array, declared: jax.Array) -> jax.Array:
+    """``use`` without the declared magnitudes of the retraction hypotheses (``retract_pin``).
+
+    Slot ``j + 1`` of a declared ``j`` is ``D - f_j``; it still uses the other declared
+    faults, but :func:`reset_unused` then sets them to model 0's estimates, uncorrelated,
+    before each step, as a magnitude it does not use.  On sim 2's 10 s ramps at 2, air in
+    oil made valve wear hard to observe; "D - valve wear" moved air in oil's estimate 4 %
+    low with a third of model 0's sd, took 0.95-0.99 of the probability, and mixing
+    pulled model 0 to it: intervals that missed the truth by up to 16 sd in 4 of 64 runs
+    (docs/faults.md, "Session 20").
+    """
+    F = declared.shape[0]
+    retracts = jnp.concatenate([jnp.zeros((1,) + declared.shape[1:], bool), declared])
+    return use & ~(declared[:, None] & retracts[None] & ~own_slots(F, declared.ndim - 1))
+
+
 def mag_var(cov: jax.Array, n: int) -> jax.Array:
     """``(F, M, *runs)``: every model's variance of every magnitude (``cov`` over ``[x; a]``)."""
     return jnp.moveaxis(jnp.diagonal(cov[n:, n:], axis1=0, axis2=1), -1, 0)

@@ -42,7 +42,9 @@ rests near its floor, unable to follow its fault, while the declared faults have
 (docs/faults.md, "Session 16"); ``restore_old`` and ``restore_steps`` (the defaults
 since session 19) act against a new fault's onset absorbed by a declared one, and
 ``drift_walk`` (selectable, off) lets a walk follow a fast-growing estimate
-(docs/faults.md, "Ramps", "Session 19").  Since session 11 the defaults are the
+(docs/faults.md, "Ramps", "Session 19"), and ``retract_pin`` (selectable, off) holds
+the other declared faults of a retraction hypothesis at model 0's estimates
+(docs/faults.md, "Ramps", "Session 20").  Since session 11 the defaults are the
 settings "S10a" of docs/faults.md (all of these on but ``post_gap``; ``post_floor_means``
 is per fault, so it is empty by default and set by the actuator's scenario files;
 :class:`EstSettings`).
@@ -215,9 +217,10 @@ class UIMMEstDiagnoser(Diagnoser):
         keep, chal = None, state.chal
         if s.retract_keep:  # the challenger of a spell of "D - f_j" does not restart
             keep, chal = rules.challenger(declared, state.imm.log_mode_probs, chal)
-        imm0, since = rules.reset_unused(
-            s, n, state.imm, state.cache.use, declared, state.since, keep
-        )
+        use = state.cache.use
+        if s.retract_pin:  # "D - f_j" holds the other declared faults at model 0's
+            use = rules.pinned(use, declared)
+        imm0, since = rules.reset_unused(s, n, state.imm, use, declared, state.since, keep)
         if s.walk_rel:  # a declared fault's walk grows with its size
             imm0 = rules.walk_rel(s, n, imm0, declared, since)
         drift = state.drift

@@ -240,6 +240,13 @@ class EstSettings(NamedTuple):
             left it (``LEVEL_Z`` sds) less than this many steps ago (see
             ``_est_rules.level_left``; steps; 0: off, any time; 5000, 0.5 s at
             ``steps_dt``, the default since session 19).
+        retract_pin: a retraction hypothesis ``D - f_j`` holds the other declared
+            faults' magnitudes at model 0's estimates (reset before each step, as the
+            magnitudes a model does not use), so that it tests "fault j ended" and cannot
+            explain j's effect by moving another declared fault's size; mixing (eqs.
+            15-17) then cannot pull model 0's estimates to that biased fit (see
+            ``_est_rules.pinned``; docs/faults.md, "Ramps", "Session 20"; off by
+            default: it leaves two acceptance cells' coverage at 88-89 %, see there).
     """
 
     walk: float = 1e-3
@@ -284,6 +291,7 @@ class EstSettings(NamedTuple):
     drift_steps: int = 20
     restore_old: float = 10.0
     restore_steps: int = 5000
+    retract_pin: bool = False
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
