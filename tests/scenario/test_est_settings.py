@@ -197,7 +197,7 @@ def test_tuning_says_to_drop_the_table_from_its_fixed_size_copy():
 
 COUNTED = ("restart_gap", "floor_gap", "post_gap", "settle_steps", "post_floor_gap")
 COUNTED += ("retract_hold", "low_floor_age", "retract_young", "settle_creep", "retract_rise")
-COUNTED += ("drift_steps", "restore_steps")
+COUNTED += ("drift_steps", "restore_steps", "retract_after")
 
 
 def test_counted_settings_keep_their_meaning_in_seconds_at_another_dt():

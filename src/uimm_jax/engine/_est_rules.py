@@ -225,6 +225,32 @@ def pinned(use: jax.Array, declared: jax.Array) -> jax.Array:
     return use & ~(declared[:, None] & retracts[None] & ~own_slots(F, declared.ndim - 1))
 
 
+def after_declaration(s: EstSettings, declared, decl_age) -> jax.Array:
+    """``retract_after``: declared faults whose retraction hypothesis does not count now.
+
+    While any declared fault was declared less than ``retract_after`` steps ago
+    (``decl_age``, counted from its declaration up to ``retract_after``), the retraction
+    hypotheses "D - f_i" of the *other* declared faults do not retract them.  On sim 2's
+    0.1 s ramps of valve wear and air in oil, air in oil is declared mid-ramp and its
+    estimate lags; "D - valve wear" explains the lag (valve wear and air in oil look
+    alike in the input gain) and leads within 2 ms, so ``retract_rise`` reads it as an
+    end and valve wear was retracted about 32 ms after air in oil's declaration (57-64 of
+    64 runs at 1-3; docs/faults.md, "Ramps", "Session 21").  The ``low`` rule (the
+    estimate below ``retract_below``) still retracts, and a lone declared fault, or the
+    young fault itself, is never held.  Returns ``(F, *runs)`` bool, the faults whose
+    retraction hypothesis is held back.
+    """
+    young = (declared & (decl_age < s.retract_after)).astype(jnp.int32)
+    others = jnp.sum(young, axis=0) - young  # other declared faults declared lately
+    return declared & (others > 0)
+
+
+def declaration_age(s: EstSettings, decl_age, fresh_decl) -> jax.Array:
+    """``retract_after``: each fault's steps since its last declaration, capped."""
+    aged = jnp.minimum(decl_age + 1, s.retract_after)
+    return jnp.where(fresh_decl, 0, aged).astype(jnp.int32)
+
+
 def mag_var(cov: jax.Array, n: int) -> jax.Array:
     """``(F, M, *runs)``: every model's variance of every magnitude (``cov`` over ``[x; a]``)."""
     return jnp.moveaxis(jnp.diagonal(cov[n:, n:], axis1=0, axis2=1), -1, 0)

@@ -42,11 +42,14 @@ rests near its floor, unable to follow its fault, while the declared faults have
 (docs/faults.md, "Session 16"); ``restore_old`` and ``restore_steps`` (the defaults
 since session 19) act against a new fault's onset absorbed by a declared one, and
 ``drift_walk`` (selectable, off) lets a walk follow a fast-growing estimate
-(docs/faults.md, "Ramps", "Session 19"), and ``retract_pin`` (selectable, off) holds
-the other declared faults of a retraction hypothesis at model 0's estimates
-(docs/faults.md, "Ramps", "Session 20").  Since session 11 the defaults are the
-settings "S10a" of docs/faults.md (all of these on but ``post_gap``; ``post_floor_means``
-is per fault, so it is empty by default and set by the actuator's scenario files;
+(docs/faults.md, "Ramps", "Session 19"); ``retract_pin`` (selectable, off) holds the
+other declared faults of a retraction hypothesis at model 0's estimates (docs/faults.md,
+"Ramps", "Session 20"), and ``retract_after`` (the default since session 21) holds the
+other declared faults' retraction hypotheses for 0.4 s after a declaration (docs/faults.md,
+"Ramps", "Session 21").  Since session 11 the
+defaults are the settings "S10a" of docs/faults.md (all of these on but ``post_gap``;
+``post_floor_means`` is per fault, so it is empty by default and set by the actuator's
+scenario files;
 :class:`EstSettings`).
 An undeclared hypothesis' own magnitude is kept ``>= floor_mean`` (and its standard
 deviation ``>= floor_sd``), so that it means "a fault" and does not settle on nominal in
@@ -199,6 +202,7 @@ class UIMMEstDiagnoser(Diagnoser):
             jnp.zeros((F,) + tuple(runs), dtype),
             jnp.zeros((F,) + tuple(runs), dtype),
             jnp.zeros((F,) + tuple(runs), jnp.int32),
+            jnp.full((F,) + tuple(runs), s.retract_after, jnp.int32),
         )
 
     def step(
@@ -277,6 +281,8 @@ class UIMMEstDiagnoser(Diagnoser):
                 rise = rules.rise(s, declared, imm_state.log_mode_probs, rise)
                 held = held & (rise > s.retract_rise)
             ret_hyp = ret_hyp & ~held
+        if s.retract_after:  # not while another declared fault is newly declared
+            ret_hyp = ret_hyp & ~rules.after_declaration(s, declared, state.decl_age)
         low = declared & (est < s.retract_below)
         low_len = jnp.where(low | ret_hyp, state.low_len + 1, 0)
         retract = low_len >= (s.retract_hold or params.hold)
@@ -315,6 +321,9 @@ class UIMMEstDiagnoser(Diagnoser):
                 s, fresh_decl, est, est_sd, since, start, anchor, level, level_sd
             )
             left = rules.level_left(s, est, est_sd, level, level_sd, left)
+        decl_age = state.decl_age
+        if s.retract_after:
+            decl_age = rules.declaration_age(s, decl_age, fresh_decl)
         if s.walk_settled:  # since: a declared fault's age; a retracted one is due again
             since = jnp.where(new_declared & ~declared, 0, since)
             since = jnp.where(retract, rules.gap_cap(s), since).astype(jnp.int32)
@@ -334,6 +343,7 @@ class UIMMEstDiagnoser(Diagnoser):
             level,
             level_sd,
             left,
+            decl_age,
         )
         recognised = jnp.where(any_ret, new_declared, dec.candidate_set)
         step_info = info._replace(

@@ -80,6 +80,9 @@ class EstSettings(NamedTuple):
     at 1: valve wear 100 -> 98 %) and the full-length paper runs identical, and take a
     second fault that starts just after the first stopped growing (sim 2's ``ramp_demo``)
     from 18 false runs of 64 to 0 (docs/faults.md, "Ramps", "Session 19 (helper)").
+    ``retract_after=4000`` (session 21) leaves every acceptance cell's summary and the
+    full-length paper runs as they were, and takes the wrong retractions of valve wear on
+    sim 2's 0.1 s ramps at 1-3 from 59, 57 and 64 runs of 64 to 0 (docs/faults.md, "Ramps").
     **Settings counted in steps** (the gaps, ``settle_steps``, ``retract_hold``,
     ``low_floor_age``) were measured on the actuator at ``dt`` = 1e-4 s and are given for
     a plant sampled every ``steps_dt`` seconds (default 1e-4): on a plant sampled every
@@ -247,6 +250,10 @@ class EstSettings(NamedTuple):
             15-17) then cannot pull model 0's estimates to that biased fit (see
             ``_est_rules.pinned``; docs/faults.md, "Ramps", "Session 20"; off by
             default: it leaves two acceptance cells' coverage at 88-89 %, see there).
+        retract_after: while another declared fault was declared less than this many
+            steps ago, a declared fault's retraction hypothesis does not retract it (see
+            ``_est_rules.after_declaration``; steps; 0: off; 4000, 0.4 s at ``steps_dt``,
+            the default since session 21).
     """
 
     walk: float = 1e-3
@@ -292,6 +299,7 @@ class EstSettings(NamedTuple):
     restore_old: float = 10.0
     restore_steps: int = 5000
     retract_pin: bool = False
+    retract_after: int = 4000
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -335,6 +343,7 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "drift_steps": (1, False, _STEPS),
     "restore_old": (0.0, False, "standard deviations; 0: off"),
     "restore_steps": (0, False, "steps; 0: off"),
+    "retract_after": (0, False, "steps; 0: off"),
 }
 _HIGH = {"restart_below": 1.0, "tangent_order": 12}
 
@@ -465,7 +474,7 @@ def est_value_from_text(name: str, text: str) -> Any:
 
 COUNTED_SETTINGS = ("restart_gap", "floor_gap", "post_gap", "settle_steps", "post_floor_gap")
 COUNTED_SETTINGS += ("retract_hold", "low_floor_age", "retract_young", "settle_creep")
-COUNTED_SETTINGS += ("retract_rise", "drift_steps", "restore_steps")
+COUNTED_SETTINGS += ("retract_rise", "drift_steps", "restore_steps", "retract_after")
 """The settings counted in steps, which :func:`settings_at_dt` converts."""
 
 
@@ -474,7 +483,8 @@ def settings_at_dt(settings: EstSettings, dt: Any) -> EstSettings:
 
     Each setting counted in steps (``restart_gap``, ``floor_gap``, ``post_gap``,
     ``settle_steps``, ``post_floor_gap``, ``retract_hold``, ``low_floor_age``,
-    ``retract_young``, ``settle_creep``, ``retract_rise``, ``restore_steps``) becomes
+    ``retract_young``, ``settle_creep``, ``retract_rise``, ``restore_steps``,
+    ``retract_after``) becomes
     ``round(count * steps_dt / dt)`` samples (halves up), at least 1 unless it was 0 (off),
     and ``steps_dt`` becomes ``dt`` (the result is its own conversion at ``dt``).
     With ``steps_dt == dt`` or ``steps_dt = 0`` it returns ``settings`` itself: the same
@@ -543,6 +553,8 @@ class EstState(NamedTuple):
         level: ``(F, *runs)`` each declared fault's level (``_est_rules.peak``),
             ``level_sd`` its sd then, ``left`` (int32) the steps since the estimate was
             last near it (``_est_rules.level_left``; ``restore_old``; zeros while off).
+        decl_age: ``(F, *runs)`` int32, steps since each fault's last declaration, up to
+            ``retract_after`` (where it starts; ``_est_rules.declaration_age``).
     """
 
     imm: IMMState
@@ -560,6 +572,7 @@ class EstState(NamedTuple):
     level: jax.Array
     level_sd: jax.Array
     left: jax.Array
+    decl_age: jax.Array
 
 
 class EstInfo(NamedTuple):

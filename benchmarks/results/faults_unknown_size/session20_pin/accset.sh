@@ -1,7 +1,7 @@
 #!/bin/bash
 # accset.sh CORE TAG [--set ...]: every acceptance part + fast ramps at 64 runs
 core=$1; tag=$2; shift 2
-cd /work/main && . .venv/bin/activate
+cd "$(git rev-parse --show-toplevel)" && . .venv/bin/activate
 F="taskset -c $core python benchmarks/faults_unknown_size.py"
 $F ramps --ramps 10 --sims 2 --runs 64 --tag ${tag}_s2 "$@"
 $F sizes --runs 64 --tag $tag "$@"
