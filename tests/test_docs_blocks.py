@@ -201,6 +201,8 @@ BLOCKS = (
     # ---------------------------------------------------------------- docs/faults.md
     Entry("docs/faults.md", "[filter.est]\ndrift_walk = 3.0\nretract_pin = true", "toml",
           merge_into="scenarios/paper_sim2_tuned.toml", check="filter_est"),
+    Entry("docs/faults.md", "[filter.est]\ndrift_walk = 3.0   # faults that grow", "toml",
+          merge_into="scenarios/paper_sim2_tuned.toml", check="filter_est"),
     # ---------------------------------------------------------------- docs/tuning.md
     Entry("docs/tuning.md", "--eval-runs 200 --out tuned.toml", "run",
           subs=(("--iters 50", "--iters 2"), ("--train-duration 30", "--train-duration 0.3"),

@@ -39,14 +39,15 @@ def test_drift_walk_adds_the_growth_variance_to_declared_faults_and_own_hypothes
     from uimm_jax.engine.imm import IMMState
 
     n, F, M, R = 3, 3, 4, 2
-    s = EstSettings(drift_walk=3.0, drift_steps=20)
+    s = EstSettings(drift_walk=3.0, drift_steps=20, drift_lead=False)
     declared = jnp.asarray([[True, False], [False, False], [False, True]])  # (F, R)
     drift = jnp.asarray([[2e-3, 1e-3], [5e-4, 1e-4], [-1e-3, 4e-3]])
     rng = np.random.default_rng(1)
     a = rng.normal(size=(n + F, n + F, M, R))
     cov = np.einsum("ijmr,kjmr->ikmr", a, a) + 1e-3 * np.eye(n + F)[..., None, None]
     st = IMMState(jnp.zeros((n + F, M, R)), jnp.asarray(cov), jnp.zeros((M, R)))
-    got = np.asarray(rules.drift_walk(s, n, st, declared, drift).cov) - cov
+    since = jnp.full((F, R), s.settle_steps)  # without drift_lead a fault's age is not read
+    got = np.asarray(rules.drift_walk(s, n, st, declared, drift, since).cov) - cov
     want = np.zeros_like(cov)
     for j in range(F):
         for r in range(R):
@@ -61,6 +62,47 @@ def test_drift_walk_adds_the_growth_variance_to_declared_faults_and_own_hypothes
     assert want[n + 1, n + 1, 3, 0] == 0 and want[n + 1, n + 1, 2, 1] == 0
     new = cov + got
     assert np.all(np.linalg.eigvalsh(np.moveaxis(new, (0, 1), (-2, -1))) > 0)
+
+
+def test_drift_lead_gives_the_walk_to_the_leading_undeclared_hypothesis_only():
+    """``drift_lead``: an undeclared fault's extra variance goes to its own hypothesis only
+    while that hypothesis has the highest mode probability of the undeclared ones, and a
+    declared fault's to every model only until it settles (age ``since`` below
+    ``settle_steps``), against a naive loop; it never adds more than the plain rule."""
+    import jax.numpy as jnp
+
+    from uimm_jax.engine.imm import IMMState
+
+    n, F, M, R = 2, 3, 4, 3
+    s = EstSettings(drift_walk=3.0, drift_steps=20, drift_lead=True)
+    declared = np.array([[False, True, False], [False, False, False], [True, False, False]])
+    drift = np.full((F, R), 2e-3)
+    logp = np.log(np.array([[0.4, 0.1, 0.3], [0.1, 0.5, 0.3], [0.3, 0.1, 0.3], [0.2, 0.3, 0.1]]))
+    cov = np.broadcast_to(np.eye(n + F)[..., None, None], (n + F, n + F, M, R)).copy()
+    st = IMMState(jnp.zeros((n + F, M, R)), jnp.asarray(cov), jnp.asarray(logp))
+    since = np.array([[0, s.settle_steps, 0], [0, 0, 0], [10, 0, 0]])  # declared: ages
+    args = (jnp.asarray(declared), jnp.asarray(drift), jnp.asarray(since))
+    got = np.asarray(rules.drift_walk(s, n, st, *args).cov)
+    extra = (3.0 * 2e-3) ** 2 - s.walk**2
+    want = cov.copy()
+    for r in range(R):
+        undeclared = [j for j in range(F) if not declared[j, r]]
+        best = max(logp[j + 1, r] for j in undeclared)
+        for j in range(F):
+            if declared[j, r]:
+                if since[j, r] < s.settle_steps:
+                    want[n + j, n + j, :, r] += extra
+            elif logp[j + 1, r] == best:
+                want[n + j, n + j, j + 1, r] += extra
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=0)
+    # run 0: fault 2 (declared) everywhere, fault 1 (hypothesis 2, p 0.3 > 0.1) alone
+    assert got[n + 1, n + 1, 2, 0] > 1 and got[n + 0, n + 0, 1, 0] == 1
+    # run 1: fault 0, declared and settled, walks nowhere
+    assert np.all(got[n + 0, n + 0, :, 1] == 1)
+    # run 2: a tie (0.3, 0.3) between the undeclared faults 0 and 1 walks both
+    assert got[n + 0, n + 0, 1, 2] > 1 and got[n + 1, n + 1, 2, 2] > 1
+    plain = rules.drift_walk(s._replace(drift_lead=False), n, st, *args)
+    assert np.all(np.asarray(plain.cov) >= got)
 
 
 @pytest.mark.parametrize("drift_walk", [3.0])

@@ -443,7 +443,7 @@ def drift_update(s: EstSettings, drift, move, fresh):
     return jnp.where(fresh, 0.0, new)
 
 
-def drift_walk(s: EstSettings, n: int, st: IMMState, declared, drift) -> IMMState:
+def drift_walk(s: EstSettings, n: int, st: IMMState, declared, drift, since) -> IMMState:
     """A fault's walk follows its estimate's growth: sd ``max(walk, drift_walk d)``.
 
     ``d`` (``EstState.drift``) is the estimate's change per step averaged over
@@ -454,11 +454,24 @@ def drift_walk(s: EstSettings, n: int, st: IMMState, declared, drift) -> IMMStat
     wins the race; a larger fixed walk lets look-alikes fit as well as the truth once the
     fault stops (docs/faults.md, "Ramps", "Session 19").  The extra variance is added to
     a declared fault's magnitude in every model and to an undeclared one in its own
-    hypothesis; adds a PSD matrix.
+    hypothesis.  With ``drift_lead`` only where a growth is being led: to the undeclared
+    hypothesis that leads the other undeclared ones (highest mode probability at the
+    step's start), and to a declared fault until it settles (``since``, its age, below
+    ``settle_steps``).  A look-alike's walk, widened by the noise of its moves, let it fit
+    as well as the truth and held the first declaration back; a settled fault's walk,
+    opened by the noise of its estimate, lowered air in oil's coverage on sim 2's 10 s
+    ramps at 2 by 3 points (docs/faults.md, "Ramps", "Session 22").  Adds a PSD matrix.
     """
     F = declared.shape[0]
     sd = jnp.maximum(s.walk, s.drift_walk * jnp.maximum(drift, 0.0))  # (F, *runs)
-    where = declared[:, None] | own_slots(F, declared.ndim - 1)  # (F, M, *runs)
+    own = own_slots(F, declared.ndim - 1)  # (F, M, *runs)
+    walked = declared
+    if s.drift_lead:  # the leading undeclared hypothesis; declared faults still growing
+        lp = jnp.where(declared, -jnp.inf, st.log_mode_probs[1:])  # (F, *runs)
+        lead = ~declared & (lp == jnp.max(lp, axis=0))
+        own = own & lead[:, None]
+        walked = declared & (since < s.settle_steps)
+    where = walked[:, None] | own
     extra = jnp.where(where, (sd**2 - s.walk**2)[:, None], 0.0)
     return st._replace(cov=add_mag_var(st.cov, n, extra))
 

@@ -42,7 +42,8 @@ rests near its floor, unable to follow its fault, while the declared faults have
 (docs/faults.md, "Session 16"); ``restore_old`` and ``restore_steps`` (the defaults
 since session 19) act against a new fault's onset absorbed by a declared one, and
 ``drift_walk`` (selectable, off) lets a walk follow a fast-growing estimate
-(docs/faults.md, "Ramps", "Session 19"); ``retract_pin`` (selectable, off) holds the
+(docs/faults.md, "Ramps", "Session 19"), where a growth is led only with ``drift_lead``
+(on; "Session 22"); ``retract_pin`` (selectable, off) holds the
 other declared faults of a retraction hypothesis at model 0's estimates (docs/faults.md,
 "Ramps", "Session 20"), and ``retract_after`` (the default since session 21) holds the
 other declared faults' retraction hypotheses for 0.4 s after a declaration (docs/faults.md,
@@ -229,7 +230,7 @@ class UIMMEstDiagnoser(Diagnoser):
             imm0 = rules.walk_rel(s, n, imm0, declared, since)
         drift = state.drift
         if s.drift_walk:  # a fault's walk follows its estimate's growth
-            imm0 = rules.drift_walk(s, n, imm0, declared, drift)
+            imm0 = rules.drift_walk(s, n, imm0, declared, drift, since)
         q_aug = jnp.zeros((n + F, n + F), dtype).at[:n, :n].set(params.imm.Q)
         q_aug = q_aug.at[n:, n:].set(jnp.eye(F, dtype=dtype) * s.walk**2)
         if s.walk_settled:  # a fault declared settle_steps ago walks slower: Q per run

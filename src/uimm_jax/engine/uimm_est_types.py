@@ -44,45 +44,13 @@ class EstSettings(NamedTuple):
     ``settle_steps=3000``, ``settle_move=10``, ``post_floor_gap=200``, ``retract_hold=200``,
     ``walk_rel_newest``, ``post_floor_mean=0.02``, ``race_floor_first=False`` and
     ``low_floor_age=8000``, with ``declare_rel=0.15`` (session 11: "S11b"; a first
-    declaration needs a tight estimate).  Measured (S10a) on the actuator (64 runs per cell,
-    with the per-fault floors below; session 10's defaults in brackets): false declarations
-    per 64 at magnitudes 0.3-3, sim 2's 1 s ramps 0, 0, 0, 0, 0 (0, 1, 8, 18, 53) and 10 s
-    ramps 3, 3, 1, 0, 0 (every run), sim 1's 10 s ramps 0, 3, 1, 0, 0 (0, 2, 0, 0, 0); every
-    abrupt, 1 s ramp, intermittent, paper and fault-free cell 0 false; retractions about
-    twice as slow (``retract_hold``).  ``declare_rel=0.15`` then lowers the 10 s ramps to 0,
-    1, 0, 0, 0 (sim 1) and 3, 1, 0, 0, 0 (sim 2) and changes no other cell's false
-    declarations, detection or isolation; first declarations come 0-12 ms later
-    (docs/faults.md, "Session 11: a first declaration only on a tight estimate").
-    ``retract_keep`` (session 12) lowers sim 2's 10 s ramps at 0.3 to 1 false run per 64
-    and changes no other acceptance cell's declarations, delays or sizes.  ``settle_low``
-    (session 13) lowers the 10 s ramps at 0.5 to 0 false runs in both sims (sim 1 0, 0, 0,
-    0, 0 and sim 2 1, 0, 0, 0, 0 at 0.3-3) and keeps every other acceptance cell within
-    its line (1 s ramps, intermittent and paper unchanged; abrupt sizes' coverage moves
-    by up to 5 points, all >= 94 %).  ``retract_young`` (session 14) lowers the retractions
-    of a present valve wear on sim 2's 10 s ramps at 2 and 3 from 10 and 3 runs per 64 to
-    2 and 0 and leaves every other acceptance cell as it was, bit for bit.
-    ``reopen_old=0.01`` and ``settle_creep=30000`` (session 15) give every acceptance cell
-    0 false runs (sim 2's 10 s ramps at 0.3: 1 before), 100 % detection and isolation and
-    coverage >= 92 % (valve wear on sim 2's 10 s ramps at 3: 100 %, 89 % before);
-    ``retract_young=60000`` with ``retract_rise=1000`` (session 15) then leave every
-    acceptance cell as it was but the last run of 640 that retracted a present valve wear,
-    and hold such retractions on 30 s ramps (26 of 32 runs to 0) while an ended fault is
-    still retracted within 0.1 s (docs/faults.md, "Session 15").  ``floor_z=2``
-    (session 16) gives every acceptance cell 0 false runs, 100 % detection and isolation,
-    no wrong retraction and coverage >= 92 % as before, and takes sim 2 with air in oil
-    first (outside the acceptance cells) from 21 and 39 false runs of 64 at 0.5 and 1 to
-    0 (docs/faults.md, "Session 16").  ``retract_below=0.05`` (session 18; 0.1 before)
-    leaves every acceptance cell's summary as it was and takes the flicker of a slowly
-    growing second fault (declared, retracted by its estimate within 0.2 s, declared
-    again) on sim 1's 30 s ramps from 3 runs of 32 to 1 (docs/faults.md, "Staircase",
-    "Session 18").  ``restore_old=10`` with ``restore_steps=5000`` (session 19) leave
-    every acceptance cell's summary as it was but one run's coverage (sim 2's 1 s ramps
-    at 1: valve wear 100 -> 98 %) and the full-length paper runs identical, and take a
-    second fault that starts just after the first stopped growing (sim 2's ``ramp_demo``)
-    from 18 false runs of 64 to 0 (docs/faults.md, "Ramps", "Session 19 (helper)").
-    ``retract_after=4000`` (session 21) leaves every acceptance cell's summary and the
-    full-length paper runs as they were, and takes the wrong retractions of valve wear on
-    sim 2's 0.1 s ramps at 1-3 from 59, 57 and 64 runs of 64 to 0 (docs/faults.md, "Ramps").
+    declaration needs a tight estimate), and the rules added since, each the default
+    once it left every acceptance cell within its line and mended a failure outside them:
+    ``retract_keep`` (session 12), ``settle_low`` (13), ``retract_young`` (14),
+    ``reopen_old=0.01``, ``settle_creep=30000``, ``retract_rise=1000`` (15), ``floor_z=2``
+    (16), ``retract_below=0.05`` (18), ``restore_old=10``, ``restore_steps=5000`` (19) and
+    ``retract_after=4000`` (21).  Each one's figures (false runs, coverage, delays, per
+    cell and against the defaults before it) are in docs/faults.md, "Session by session".
     **Settings counted in steps** (the gaps, ``settle_steps``, ``retract_hold``,
     ``low_floor_age``) were measured on the actuator at ``dt`` = 1e-4 s and are given for
     a plant sampled every ``steps_dt`` seconds (default 1e-4): on a plant sampled every
@@ -254,6 +222,10 @@ class EstSettings(NamedTuple):
             steps ago, a declared fault's retraction hypothesis does not retract it (see
             ``_est_rules.after_declaration``; steps; 0: off; 4000, 0.4 s at ``steps_dt``,
             the default since session 21).
+        drift_lead: ``drift_walk``'s walk goes only where a growth is being led: to an
+            undeclared hypothesis while it leads the other undeclared ones, and to a
+            declared fault until it settles (its age below ``settle_steps``; see
+            ``_est_rules.drift_walk``; docs/faults.md, "Ramps", "Session 22").
     """
 
     walk: float = 1e-3
@@ -300,6 +272,7 @@ class EstSettings(NamedTuple):
     restore_steps: int = 5000
     retract_pin: bool = False
     retract_after: int = 4000
+    drift_lead: bool = True
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
