@@ -457,7 +457,8 @@ def drift_walk(s: EstSettings, n: int, st: IMMState, declared, drift, since) -> 
     hypothesis.  With ``drift_lead`` only where a growth is being led: to the undeclared
     hypothesis that leads the other undeclared ones (highest mode probability at the
     step's start), and to a declared fault until it settles (``since``, its age, below
-    ``settle_steps``).  A look-alike's walk, widened by the noise of its moves, let it fit
+    ``settle_steps``; restarted by its growth only where :func:`growth_ages` holds, as on
+    the defaults).  A look-alike's walk, widened by the noise of its moves, let it fit
     as well as the truth and held the first declaration back; a settled fault's walk,
     opened by the noise of its estimate, lowered air in oil's coverage on sim 2's 10 s
     ramps at 2 by 3 points (docs/faults.md, "Ramps", "Session 22").  Adds a PSD matrix.

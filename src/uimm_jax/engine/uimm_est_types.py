@@ -224,7 +224,8 @@ class EstSettings(NamedTuple):
             the default since session 21).
         drift_lead: ``drift_walk``'s walk goes only where a growth is being led: to an
             undeclared hypothesis while it leads the other undeclared ones, and to a
-            declared fault until it settles (its age below ``settle_steps``; see
+            declared fault until it settles (its age below ``settle_steps``, a growth
+            age with ``walk_settled`` and ``settle_move`` on; see
             ``_est_rules.drift_walk``; docs/faults.md, "Ramps", "Session 22").
     """
 
