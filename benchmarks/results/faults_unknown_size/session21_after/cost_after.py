@@ -15,16 +15,15 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np
 
 import faults_unknown_size as fu
+from uimm_jax.engine.uimm_est_types import est_value_from_text
 from uimm_jax.scenario.parse import parse_scenario
 from uimm_jax.scenario.write import scenario_to_dict
 from uimm_jax.studies.run import setup_scenario, simulate_scenario
 
 sc = fu._scenario(1, 1.0)
 d = scenario_to_dict(sc)
-from uimm_jax.engine.uimm_est_types import est_value_from_text
-
-name, _, value = (sys.argv[2] if len(sys.argv) > 2 else "retract_after=0").partition("=")
-d["filter"]["est"][name] = est_value_from_text(name, value)
+setting, _, value = (sys.argv[2] if len(sys.argv) > 2 else "retract_after=0").partition("=")
+d["filter"]["est"][setting] = est_value_from_text(setting, value)
 setups = {
     "uimm": setup_scenario(sc, "uimm"),
     "uimm-est": setup_scenario(sc, "uimm-est"),
@@ -35,5 +34,5 @@ single, batch = fu.cost_timings(setups, truth, int(sys.argv[1]) if len(sys.argv)
 for name, t in (("one run, us/step", single), ("64 runs, us/run-step", batch)):
     med = {m: float(np.median(v)) for m, v in t.items()}
     print(name, {m: round(v, 3) for m, v in med.items()},
-          "defaults/(%s=%s) = %.3f" % (name, value, med["uimm-est"] / med["uimm-est_set"]),
+          "defaults/(%s=%s) = %.3f" % (setting, value, med["uimm-est"] / med["uimm-est_set"]),
           "uimm-est/uimm = %.2f" % (med["uimm-est"] / med["uimm"]))
