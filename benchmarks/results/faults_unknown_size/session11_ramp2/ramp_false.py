@@ -134,7 +134,7 @@ def one(sim, mag, r):
     ]
     sc = _scenario(sim, ev)
     setup = srun.setup_scenario(sc, "uimm-est")
-    key = jnp.asarray(run_keys(0, 64)[0][r])
+    key = jnp.asarray(run_keys(int(os.environ.get("SEED", "0")), 64)[0][r])  # SEED: session 23
     orig = jax.random.PRNGKey
     jax.random.PRNGKey = lambda s: key  # simulate_scenario's key: the sweep's noise key of run r
     try:
