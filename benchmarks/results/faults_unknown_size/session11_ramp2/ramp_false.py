@@ -61,7 +61,7 @@ def _scenario(sim, events=None):
     return parse_scenario(d, source=f"paper_sim{sim}_tuned")
 
 
-def run_cells(sim, mags):
+def run_cells(sim, mags, runs=64, seed=0):
     """The ``ramps`` part's case of ``sim`` at each magnitude: 64 runs, seed 0 (a sweep result)."""
     a, b = FIRST[sim]
     case = {
@@ -70,10 +70,10 @@ def run_cells(sim, mags):
     }
     return run_sweep(
         _scenario(sim),
-        runs=64,
+        runs=runs,
         methods=["uimm-est"],
         cases=[case],
-        seed=0,
+        seed=seed,
         batch=128,
         magnitudes=mags,
         ramps=[RAMP],

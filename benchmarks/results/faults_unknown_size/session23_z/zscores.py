@@ -7,6 +7,7 @@ runs outside the 95 % interval; writes ``z_<SIM>_<RAMP>_<MAG>_<SEED>.json`` here
 """
 
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -17,7 +18,6 @@ import numpy as np  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "session11_ramp2"))
-import os  # noqa: E402
 
 argv = sys.argv[1:]
 sets = argv[argv.index("--") + 1 :] if "--" in argv else []
@@ -27,14 +27,10 @@ runs = int(argv[4]) if len(argv) > 4 else 64
 os.environ["RAMP"] = str(ramp)
 import ramp_false as rf  # noqa: E402
 
-from uimm_jax.studies.sweep import run_sweep  # noqa: E402
-
 if sets:
     rf._settings(sets)
 a, b = rf.FIRST[sim]
-case = {"name": f"sim{sim}", "events": [{"fault": a, "time": 0.5}, {"fault": b, "time": rf.ONSET2}]}
-res = run_sweep(rf._scenario(sim), runs=runs, methods=["uimm-est"], cases=[case], seed=seed,
-                batch=64, magnitudes=[mag], ramps=[ramp], fault_free=False)
+res = rf.run_cells(sim, [mag], runs=runs, seed=seed)
 m = np.asarray(res.estimates["magnitude"][0])
 s = np.asarray(res.estimates["magnitude_sd"][0])
 out = {"command": "zscores.py " + " ".join(sys.argv[1:])}
