@@ -19,7 +19,9 @@ Parts:
 * ``sizes``: sims 1 and 2, abrupt faults at magnitudes 0.3, 0.5, 1, 2, 3 (air in oil on
   its log scale), the first fault at 0.5 s and the second at 1.2 s of a 2 s run.
 * ``ramps``: the same with ramps of ``--ramps`` s; onsets 0.5 s and ``1.5 + ramp`` s, runs
-  of ``2.5 + 2 ramp`` s (every ramp completes, the estimate has 0.5 s to settle).  With
+  of ``2.5 + 2 ramp`` s (every ramp completes, the estimate has 1 s to settle; ``--settle
+  S`` adds S s, session 24: a fault weakly observable under the other may be lost seconds
+  after the ramp).  With
   ``--growth exponential`` the ramp is the time constant ``tau`` of ``1 - exp(-t / tau)``
   and the timings take ``3 tau`` for the ramp (95 % of the magnitude): onsets 0.5 s and
   ``1.5 + 3 tau``, runs of ``2.5 + 6 tau`` s; estimates are scored against the truth's
@@ -106,7 +108,7 @@ def part_sizes(args, ramp: float | None = None) -> dict:
         r = ramp or 0.0
         span = 3 * r if args.growth == "exponential" else r
         t2 = 1.2 if not r else 1.5 + span
-        dur = 2.0 if not r else 2.5 + 2 * span
+        dur = 2.0 if not r else 2.5 + 2 * span + args.settle
         sc = _scenario(sim, dur)
         case = {
             "name": f"sim{sim}",
@@ -331,6 +333,7 @@ def main() -> None:
         "--growth", choices=["linear", "exponential"], default="linear", help="ramps: shape"
     )
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--settle", type=float, default=0.0, help="ramps: s more after the ramp")
     p.add_argument("--batch", type=int, default=128)
     p.add_argument("--tag", default="")
     p.add_argument("--repeats", type=int, default=3, help="cost: interleaved repeats")

@@ -73,6 +73,18 @@ def short_dict(sim: int = 1, duration: float = 1.0, events=(0.3, 0.6), **changes
     return d
 
 
+def sim2_ramps(duration: float, ramp: float, second_at: float, magnitude: float = 2.0) -> dict:
+    """Sim 2's tuned file: valve wear from 0.5 s and air in oil from ``second_at`` s, both
+    at ``magnitude`` over ``ramp`` s, runs of ``duration`` s."""
+    d = tuned_dict(2)
+    d["duration"] = duration
+    d["events"] = [
+        {"fault": "valve_wear", "time": 0.5, "magnitude": magnitude, "ramp": ramp},
+        {"fault": "air_in_oil", "time": second_at, "magnitude": magnitude, "ramp": ramp},
+    ]
+    return d
+
+
 def short_scenario(sim: int = 1, duration: float = 1.0, events=(0.3, 0.6), **changes):
     """:func:`short_dict` validated (``filter__stay=0.999`` changes ``[filter].stay``)."""
     return parse_scenario(short_dict(sim, duration, events, **changes), source=f"short-sim{sim}")

@@ -203,6 +203,8 @@ BLOCKS = (
           merge_into="scenarios/paper_sim2_tuned.toml", check="filter_est"),
     Entry("docs/faults.md", "[filter.est]\ndrift_walk = 3.0   # faults that grow", "toml",
           merge_into="scenarios/paper_sim2_tuned.toml", check="filter_est"),
+    Entry("docs/faults.md", "[filter.est]\nend_prior = 1e-6   # faults that stay", "toml",
+          merge_into="scenarios/paper_sim2_tuned.toml", check="filter_est"),
     # ---------------------------------------------------------------- docs/tuning.md
     Entry("docs/tuning.md", "--eval-runs 200 --out tuned.toml", "run",
           subs=(("--iters 50", "--iters 2"), ("--train-duration 30", "--train-duration 0.3"),

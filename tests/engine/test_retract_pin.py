@@ -4,7 +4,6 @@ estimates (docs/faults.md, "Ramps", "Session 20")."""
 from __future__ import annotations
 
 import itertools
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -152,16 +151,10 @@ def test_retract_after_keeps_valve_wear_when_air_in_oil_is_declared_mid_ramp():
     wear" explains its lag; without the rule valve wear is retracted tens of ms later,
     with ``retract_after = 4000`` (0.4 s) it stays declared and its interval covers 2."""
     import uimm_jax
+    from _robustness_helpers import sim2_ramps
     from uimm_jax.scenario.parse import parse_scenario
-    from uimm_jax.scenario.write import scenario_to_dict
 
-    sim2 = Path(__file__).resolve().parents[2] / "scenarios" / "paper_sim2_tuned.toml"
-    d = scenario_to_dict(uimm_jax.load_scenario(sim2))
-    d["duration"] = 1.9
-    d["events"] = [
-        {"fault": "valve_wear", "time": 0.5, "magnitude": 2.0, "ramp": 0.1},
-        {"fault": "air_in_oil", "time": 1.6, "magnitude": 2.0, "ramp": 0.1},
-    ]
+    d = sim2_ramps(duration=1.9, ramp=0.1, second_at=1.6)
     out = {}
     for after in (0, 4000):
         d["filter"]["est"]["retract_after"] = after

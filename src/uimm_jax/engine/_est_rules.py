@@ -158,6 +158,42 @@ def retract_young(s: EstSettings, declared, since) -> jax.Array:
     return declared & (since >= s.retract_young) & (others > 0)
 
 
+def end_prior(log_trans: jax.Array, declared: jax.Array, p: float) -> jax.Array:
+    """``end_prior``: every transition into a retraction hypothesis is ``p``.
+
+    The filter's ``stay`` shares ``1 - stay`` among the other models, so at 10 kHz with
+    ``stay = 0.9999`` the prior gives a declared fault's end ``3.3e-5`` per sample, a
+    fault that lasts 0.3 s.  Under air in oil at 2-3 valve wear is weakly observable
+    and trades off against air in oil's size; the mode probabilities then drift to "D -
+    valve wear" on a small edge of fit, mixing pulls model 0's air in oil to that
+    hypothesis' lower value, and once ``retract_young`` lets go (6 s after air in oil's
+    ramp) the present valve wear is retracted: 19 of 64 runs on sim 2's 10 s ramps at 2
+    with 10 s more after the ramp (docs/faults.md, "Ramps", "Session 24").  With ``p`` a
+    fault's end needs evidence, which an abrupt end gives within samples.  Only while
+    two or more faults are declared: a lone fault cannot hide behind another, and its
+    retraction hypothesis (the nominal model) takes the lead for samples at a second
+    fault's abrupt onset, which lets that fault's hypothesis restart (``race_below``);
+    without it sim 1's abrupt faults at 3 had 2 false runs of 64 (air in oil won the race
+    while leakage's hypothesis crept from its floor).
+
+    ``log_trans`` ``(M, M)`` or ``(M, M, *runs)``, ``declared`` ``(F, *runs)``: while at
+    least two faults are declared, column ``j + 1`` ("D - f_j") of each declared ``j``
+    gets ``p`` off the diagonal, and each row's diagonal takes what its row lost or
+    gained, so rows stay stochastic.  Returns ``(M, M, *runs)``.
+    """
+    nb = declared.ndim - 1
+    M = declared.shape[0] + 1
+    cols = jnp.concatenate([jnp.zeros((1,) + declared.shape[1:], bool), declared])[None]
+    eye = np.eye(M, dtype=bool).reshape((M, M) + (1,) * nb)
+    lt = log_trans.reshape(log_trans.shape + (1,) * (nb + 2 - log_trans.ndim))
+    off = jnp.where(eye, 0.0, jnp.where(cols, p, jnp.exp(lt)))
+    tiny = jnp.finfo(log_trans.dtype).tiny  # F * p >= 1: a row without a diagonal, no NaN
+    diag = jnp.maximum(1.0 - jnp.sum(off, axis=1, keepdims=True), tiny)
+    new = jnp.log(jnp.where(eye, diag, off)).astype(log_trans.dtype)
+    two = jnp.sum(declared.astype(jnp.int32), axis=0) >= 2
+    return jnp.where(two, new, lt)  # fewer than two declared: as given
+
+
 RISE_LEVEL = 0.01
 """The mode probability from which ``retract_rise`` counts a retraction hypothesis' rise."""
 

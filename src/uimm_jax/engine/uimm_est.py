@@ -239,7 +239,10 @@ class UIMMEstDiagnoser(Diagnoser):
             pad = jnp.concatenate([jnp.zeros((n,) + extra.shape[1:], dtype), extra])
             eye = np.eye(n + F).reshape((n + F, n + F, 1) + (1,) * (extra.ndim - 1))
             q_aug = q_aug.reshape(q_aug.shape + (1,) * extra.ndim) + eye * pad[:, None, None]
-        imm_params = IMMParams(params.imm.log_transition, q_aug, params.imm.R)
+        log_trans = params.imm.log_transition
+        if s.end_prior:  # a declared fault's end is rarer than the filter's switches
+            log_trans = rules.end_prior(log_trans, declared, s.end_prior)
+        imm_params = IMMParams(log_trans, q_aug, params.imm.R)
         imm_state, info = imm_step(
             self.aug, imm0, state.cache, imm_params, u, y, gate=self.gate, with_cov=with_cov
         )
@@ -468,15 +471,16 @@ def _warn_converted(given: EstSettings, used: EstSettings) -> None:
     if given.steps_dt != default.steps_dt or used is given:
         return
     moved = [
-        f"{k} {getattr(given, k)} -> {getattr(used, k)}"
-        for k in COUNTED_SETTINGS
+        f"{k} {getattr(given, k)} -> {getattr(used, k)} "
+        + ("per sample" if k == "end_prior" else "samples")  # end_prior: a probability
+        for k in (*COUNTED_SETTINGS, "end_prior")
         if getattr(given, k) != getattr(default, k) and getattr(given, k) != getattr(used, k)
     ]
     if moved:
         warnings.warn(
             f"settings.steps_dt: the settings counted in steps are read at steps_dt = "
             f"{given.steps_dt} s (the default) and converted to the plant's dt = "
-            f"{used.steps_dt} s: {', '.join(moved)} samples; if you gave them in this "
+            f"{used.steps_dt} s: {', '.join(moved)}; if you gave them in this "
             f"plant's samples, set steps_dt = {used.steps_dt} (or 0)",
             UIMMWarning,
             stacklevel=3,

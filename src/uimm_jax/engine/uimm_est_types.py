@@ -227,6 +227,12 @@ class EstSettings(NamedTuple):
             declared fault until it settles (its age below ``settle_steps``, a growth
             age with ``walk_settled`` and ``settle_move`` on; see
             ``_est_rules.drift_walk``; docs/faults.md, "Ramps", "Session 22").
+        end_prior: the prior probability per sample that a declared fault ends: every
+            model's transition into that fault's retraction hypothesis "D - f_j" is
+            this (the rest of its row's mass stays on its diagonal), instead of the
+            filter's off-diagonal share; a hypothesis of an end then needs evidence, not
+            the prior's drift (see ``_est_rules.end_prior``; docs/faults.md, "Ramps",
+            "Session 24"; 0: off).
     """
 
     walk: float = 1e-3
@@ -274,6 +280,7 @@ class EstSettings(NamedTuple):
     retract_pin: bool = False
     retract_after: int = 4000
     drift_lead: bool = True
+    end_prior: float = 0.0
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -318,8 +325,12 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "restore_old": (0.0, False, "standard deviations; 0: off"),
     "restore_steps": (0, False, "steps; 0: off"),
     "retract_after": (0, False, "steps; 0: off"),
+    "end_prior": (0.0, False, "a probability per sample; 0: off"),
 }
-_HIGH = {"restart_below": 1.0, "tangent_order": 12}
+END_PRIOR_MAX = 0.01
+"""The largest ``end_prior``: a row of the transition matrix keeps a positive diagonal
+while ``F * END_PRIOR_MAX < 1``."""
+_HIGH = {"restart_below": 1.0, "tangent_order": 12, "end_prior": END_PRIOR_MAX}
 
 
 def _kind(name: str) -> type:
@@ -374,7 +385,10 @@ def est_setting_problem(name: str, value: Any) -> str | None:
             got += f"; write {int(value)} (no decimal point)"
         return f"an integer in [{int(low)}, {top}] ({what}), got {got}"
     high = _HIGH.get(name)
-    rng = ("> " if low_open else ">= ") + f"{low:g}" if high is None else f"in ({low:g}, {high:g}]"
+    if high is None:
+        rng = ("> " if low_open else ">= ") + f"{low:g}"
+    else:
+        rng = f"in {'(' if low_open else '['}{low:g}, {high:g}]"
     if not is_number(value):
         return f"a number {rng} ({what}), got {type_name(value)}"
     x = float(value)
@@ -461,6 +475,8 @@ def settings_at_dt(settings: EstSettings, dt: Any) -> EstSettings:
     ``retract_after``) becomes
     ``round(count * steps_dt / dt)`` samples (halves up), at least 1 unless it was 0 (off),
     and ``steps_dt`` becomes ``dt`` (the result is its own conversion at ``dt``).
+    ``end_prior``, a probability per sample, becomes ``end_prior * dt / steps_dt`` (the
+    same rate of ends per second; at most ``END_PRIOR_MAX``).
     With ``steps_dt == dt`` or ``steps_dt = 0`` it returns ``settings`` itself: the same
     numbers, bit for bit.  Not converted: the random walks (per sample; scaling them by
     ``sqrt(dt / steps_dt)`` was measured worse, :class:`EstSettings`) and the decision's
@@ -495,7 +511,8 @@ def settings_at_dt(settings: EstSettings, dt: Any) -> EstSettings:
                 f"{counts[name]} samples at dt = {dt!r} s, more than 2^31 - 1; "
                 f"lower {name} or raise dt"
             )
-    return s._replace(**counts, steps_dt=float(dt))
+    end = min(s.end_prior / ratio, END_PRIOR_MAX)  # a probability per sample: a rate kept
+    return s._replace(**counts, end_prior=end, steps_dt=float(dt))
 
 
 class EstState(NamedTuple):

@@ -1,0 +1,106 @@
+"""``end_prior``: the prior probability per sample that a declared fault ends, the
+transition into its retraction hypothesis (docs/faults.md, "Ramps", "Session 24")."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from uimm_jax.engine import _est_rules as rules
+from uimm_jax.engine.uimm_est_types import EstSettings
+
+F, M = 3, 4
+PATTERNS = np.array(list(itertools.product([False, True], repeat=F))).T  # (F, 8): every set
+
+
+# -- end_prior: the prior probability that a declared fault ends -----------------------
+
+
+def _naive_end_prior(log_trans, declared, p):
+    runs = declared.shape[1]
+    q = np.repeat(np.exp(log_trans)[..., None], runs, axis=-1)
+    for r in range(runs):
+        if declared[:, r].sum() < 2:  # a lone declared fault: the filter's prior
+            continue
+        for j in range(F):
+            if declared[j, r]:
+                for i in range(M):
+                    if i != j + 1:
+                        q[i, j + 1, r] = p
+        for i in range(M):
+            q[i, i, r] = 1.0 - sum(q[i, k, r] for k in range(M) if k != i)
+    out = np.log(q)
+    for r in range(runs):
+        if declared[:, r].sum() < 2:
+            out[..., r] = log_trans
+    return out
+
+
+def test_end_prior_sets_every_transition_into_a_retraction_hypothesis():
+    import jax.numpy as jnp
+
+    stay = 0.9999
+    q = np.full((M, M), (1 - stay) / (M - 1)) + np.eye(M) * (stay - (1 - stay) / (M - 1))
+    got = np.asarray(rules.end_prior(jnp.asarray(np.log(q)), jnp.asarray(PATTERNS), 1e-7))
+    want = _naive_end_prior(np.log(q), PATTERNS, 1e-7)
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    np.testing.assert_allclose(np.exp(got).sum(axis=1), 1.0, rtol=1e-12)
+    none = PATTERNS.sum(axis=0) < 2  # fewer than two declared: the filter's, bit for bit
+    np.testing.assert_array_equal(got[..., none], np.log(q)[..., None].repeat(none.sum(), -1))
+    assert EstSettings().end_prior == 0.0
+
+
+def test_end_prior_is_a_rate_converted_with_dt_and_checked():
+    from uimm_jax.engine.uimm_est_types import END_PRIOR_MAX, est_setting_problem, settings_at_dt
+
+    s = EstSettings(end_prior=1e-6)  # given at steps_dt = 1e-4 s
+    assert settings_at_dt(s, 1e-4) is s
+    assert settings_at_dt(s, 1e-3).end_prior == pytest.approx(1e-5, rel=1e-12)  # per second
+    assert settings_at_dt(EstSettings(end_prior=5e-3), 1e-2).end_prior == END_PRIOR_MAX
+    assert est_setting_problem("end_prior", 0.0) is None
+    msg = est_setting_problem("end_prior", 0.5)
+    assert msg is not None and "[0, 0.01]" in msg
+
+
+def test_end_prior_gives_no_nan_when_the_ends_would_fill_a_row():
+    import jax.numpy as jnp
+
+    q = np.full((M, M), 0.1) + np.eye(M) * 0.6
+    got = np.asarray(rules.end_prior(jnp.asarray(np.log(q)), jnp.asarray(PATTERNS), 0.5))
+    assert np.all(np.isfinite(got[np.isfinite(got)])) and not np.isnan(got).any()
+
+
+def test_end_prior_keeps_valve_wear_after_air_in_oils_ramp_on_a_long_run():
+    """Sim 2, valve wear and air in oil each at 2 over 10 s ramps, 11 s after the second
+    ramp (seed 4): with the filter's own prior of an end (``end_prior = 0``, 3.3e-5 per
+    sample) "D - valve wear" takes the lead on a small edge of fit and valve wear is
+    retracted about 6 s after the ramp, with air in oil's interval below its truth; with
+    ``end_prior = 1e-6`` valve wear stays declared and both intervals cover 2."""
+    import uimm_jax
+    from _robustness_helpers import sim2_ramps
+    from uimm_jax.scenario.parse import parse_scenario
+
+    d = sim2_ramps(duration=32.5, ramp=10.0, second_at=11.5)
+    out = {}
+    for p in (0.0, 1e-6):
+        d["filter"]["est"]["end_prior"] = p
+        out[p] = uimm_jax.run_scenario(parse_scenario(d), seed=4).summary
+    assert [(x["fault"], x["correct"]) for x in out[0.0]["retractions"]] == [("valve_wear", False)]
+    lo, hi = out[0.0]["declarations"][1]["magnitude_ci"]
+    assert hi < 2.0  # air in oil's interval misses the truth, low
+    assert out[1e-6]["retractions"] == []
+    for x in out[1e-6]["declarations"]:
+        assert x["correct"] and x["magnitude_ci"][0] <= 2.0 <= x["magnitude_ci"][1], x
+
+
+def test_an_end_prior_converted_to_the_plants_dt_is_warned_about():
+    from uimm_jax.engine import uimm_est
+    from uimm_jax.engine.uimm_est_types import settings_at_dt
+    from uimm_jax.errors import UIMMWarning
+
+    given = EstSettings(end_prior=1e-6)
+    used = settings_at_dt(given, 1e-3)
+    with pytest.warns(UIMMWarning, match=r"end_prior 1e-06 -> [0-9.]+e-0[56] per sample"):
+        uimm_est._warn_converted(given, used)
