@@ -4,6 +4,7 @@ transition into its retraction hypothesis (docs/faults.md, "Ramps", "Session 24"
 from __future__ import annotations
 
 import itertools
+import os
 
 import numpy as np
 import pytest
@@ -72,6 +73,11 @@ def test_end_prior_gives_no_nan_when_the_ends_would_fill_a_row():
     assert np.all(np.isfinite(got[np.isfinite(got)])) and not np.isnan(got).any()
 
 
+@pytest.mark.slow
+@pytest.mark.skipif(
+    not os.environ.get("UIMM_JAX_SLOW_TESTS"),
+    reason="set UIMM_JAX_SLOW_TESTS=1 (21 s: two runs of 32.5 s)",
+)
 def test_end_prior_keeps_valve_wear_after_air_in_oils_ramp_on_a_long_run():
     """Sim 2, valve wear and air in oil each at 2 over 10 s ramps, 11 s after the second
     ramp (seed 4): with the filter's own prior of an end (``end_prior = 0``, 3.3e-5 per
