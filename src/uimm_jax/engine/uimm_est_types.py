@@ -227,12 +227,13 @@ class EstSettings(NamedTuple):
             declared fault until it settles (its age below ``settle_steps``, a growth
             age with ``walk_settled`` and ``settle_move`` on; see
             ``_est_rules.drift_walk``; docs/faults.md, "Ramps", "Session 22").
-        end_prior: the prior probability per sample that a declared fault ends: every
-            model's transition into that fault's retraction hypothesis "D - f_j" is
-            this (the rest of its row's mass stays on its diagonal), instead of the
-            filter's off-diagonal share; a hypothesis of an end then needs evidence, not
-            the prior's drift (see ``_est_rules.end_prior``; docs/faults.md, "Ramps",
-            "Session 24"; 0: off).
+        end_prior: the prior probability per sample that a declared fault ends: while
+            two or more faults are declared, every model's transition into a declared
+            fault's retraction hypothesis "D - f_j" is this (the rest of its row's mass
+            stays on its diagonal), instead of the filter's off-diagonal share; a
+            hypothesis of an end then needs evidence, not the prior's drift (see
+            ``_est_rules.end_prior``; docs/faults.md, "Ramps", "Session 24"; 0: off,
+            the default; 1e-6, a fault that lasts 100 s, measured there).
     """
 
     walk: float = 1e-3
