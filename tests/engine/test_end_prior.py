@@ -70,7 +70,7 @@ def test_end_prior_gives_no_nan_when_the_ends_would_fill_a_row():
 
     q = np.full((M, M), 0.1) + np.eye(M) * 0.6
     got = np.asarray(rules.end_prior(jnp.asarray(np.log(q)), jnp.asarray(PATTERNS), 0.5))
-    assert np.all(np.isfinite(got[np.isfinite(got)])) and not np.isnan(got).any()
+    assert not np.isnan(got).any()
 
 
 @pytest.mark.slow
