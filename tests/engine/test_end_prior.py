@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import warnings
 
 import numpy as np
 import pytest
@@ -21,6 +22,7 @@ PATTERNS = np.array(list(itertools.product([False, True], repeat=F))).T  # (F, 8
 
 def _naive_end_prior(log_trans, declared, p):
     runs = declared.shape[1]
+    F, M = declared.shape[0], declared.shape[0] + 1  # noqa: N806 (the module's names)
     q = np.repeat(np.exp(log_trans)[..., None], runs, axis=-1)
     for r in range(runs):
         if declared[:, r].sum() < 2:  # a lone declared fault: the filter's prior
@@ -50,7 +52,28 @@ def test_end_prior_sets_every_transition_into_a_retraction_hypothesis():
     np.testing.assert_allclose(np.exp(got).sum(axis=1), 1.0, rtol=1e-12)
     none = PATTERNS.sum(axis=0) < 2  # fewer than two declared: the filter's, bit for bit
     np.testing.assert_array_equal(got[..., none], np.log(q)[..., None].repeat(none.sum(), -1))
-    assert EstSettings().end_prior == 0.0
+    assert EstSettings().end_prior == 1e-6  # the default since session 25
+
+
+def test_end_prior_table_gathers_the_direct_result_bit_for_bit():
+    """Up to ``END_TABLE_MAX_F`` faults the matrices of every declared set are computed
+    once and gathered per run; the result is the per-run computation's, bit for bit,
+    and above that count the per-run computation is used (checked on the naive loop)."""
+    import jax
+    import jax.numpy as jnp
+
+    rng = np.random.default_rng(3)
+    q = rng.random((M, M)) + np.eye(M) * 40.0
+    q /= q.sum(axis=1, keepdims=True)
+    declared = rng.random((F, 7, 5)) < 0.5  # (F, *runs) with two batch axes
+    table = jax.jit(lambda lt, d: rules.end_prior(lt, d, 1e-6))(jnp.log(q), declared)
+    direct = jax.jit(lambda lt, d: rules._end_prior(lt, d, 1e-6))(jnp.log(q), declared)
+    np.testing.assert_array_equal(np.asarray(table), np.asarray(direct))
+    big = rules.END_TABLE_MAX_F + 1  # no table: 2^9 sets
+    qb = np.full((big + 1, big + 1), 1e-4) + np.eye(big + 1) * (1 - (big + 1) * 1e-4)
+    db = rng.random((big, 6)) < 0.3
+    got = np.asarray(rules.end_prior(jnp.log(qb), jnp.asarray(db), 1e-6))
+    np.testing.assert_allclose(got, _naive_end_prior(np.log(qb), db, 1e-6), rtol=1e-12)
 
 
 def test_end_prior_is_a_rate_converted_with_dt_and_checked():
@@ -83,7 +106,8 @@ def test_end_prior_keeps_valve_wear_after_air_in_oils_ramp_on_a_long_run():
     ramp (seed 4): with the filter's own prior of an end (``end_prior = 0``, 3.3e-5 per
     sample) "D - valve wear" takes the lead on a small edge of fit and valve wear is
     retracted about 6 s after the ramp, with air in oil's interval below its truth; with
-    ``end_prior = 1e-6`` valve wear stays declared and both intervals cover 2."""
+    ``end_prior = 1e-6`` (the default since session 25) valve wear stays declared and
+    both intervals cover 2."""
     import uimm_jax
     from _robustness_helpers import sim2_ramps
     from uimm_jax.scenario.parse import parse_scenario
@@ -106,7 +130,11 @@ def test_an_end_prior_converted_to_the_plants_dt_is_warned_about():
     from uimm_jax.engine.uimm_est_types import settings_at_dt
     from uimm_jax.errors import UIMMWarning
 
-    given = EstSettings(end_prior=1e-6)
+    given = EstSettings(end_prior=2e-6)  # not the default: a value the user gave
     used = settings_at_dt(given, 1e-3)
-    with pytest.warns(UIMMWarning, match=r"end_prior 1e-06 -> [0-9.]+e-0[56] per sample"):
+    with pytest.warns(UIMMWarning, match=r"end_prior 2e-06 -> [0-9.]+e-0[56] per sample"):
         uimm_est._warn_converted(given, used)
+    default = EstSettings()  # the default end_prior is converted without a warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        uimm_est._warn_converted(default, settings_at_dt(default, 1e-3))

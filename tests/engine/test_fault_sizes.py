@@ -362,9 +362,9 @@ def test_uimm_est_reopens_a_declared_magnitude_air_in_oil_x3():
     st = _est_setup(sim=2, mag=3.0, duration=0.8, events=(0.2, 0.4))
     j = list(st.table.names).index("air_in_oil")
     diag = st.diagnoser
-    # with session 7's other defaults: session 8's (race_below, walk_rel) happen to
-    # rescue this run without the re-opening
-    no_reopen = diag.settings._replace(reopen_rel=0.0, race_below=0.0, walk_rel=0.0)
+    # with session 7's other defaults: session 8's (race_below, walk_rel) and session
+    # 25's (end_prior) each happen to rescue this run without the re-opening
+    no_reopen = diag.settings._replace(reopen_rel=0.0, race_below=0.0, walk_rel=0.0, end_prior=0.0)
     old = dataclasses.replace(st, diagnoser=dataclasses.replace(diag, settings=no_reopen))
     res, res_old = (execute_run(s, filter_measurements, seed=0) for s in (st, old))
     decl = res.summary["declarations"]

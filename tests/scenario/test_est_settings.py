@@ -211,7 +211,9 @@ def test_counted_settings_keep_their_meaning_in_seconds_at_another_dt():
     assert slow.retract_young == 6000  # 6 s either way
     assert slow.retract_rise == 100  # 0.1 s either way
     assert slow.drift_steps == 2  # 2 ms either way
-    assert slow._replace(**{k: getattr(s, k) for k in COUNTED}, steps_dt=1e-4) == s  # no other
+    assert slow.end_prior == pytest.approx(10 * s.end_prior, rel=1e-12)  # the same rate
+    back = {k: getattr(s, k) for k in (*COUNTED, "end_prior")}
+    assert slow._replace(**back, steps_dt=1e-4) == s  # no other
     assert slow.steps_dt == 1e-3 and settings_at_dt(slow, 1e-3) is slow
     fast = settings_at_dt(s, 4e-5)  # 2.5 times faster: 3 * 2.5 = 7.5 rounds to 8
     assert (fast.settle_steps, fast.floor_gap, fast.retract_hold) == (7500, 8, 3)

@@ -9,6 +9,8 @@ doc of :mod:`uimm_jax.engine.uimm_est` says what each rule is for.
 
 from __future__ import annotations
 
+import itertools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -181,6 +183,22 @@ def end_prior(log_trans: jax.Array, declared: jax.Array, p: float) -> jax.Array:
     gets ``p`` off the diagonal, and each row's diagonal takes what its row lost or
     gained, so rows stay stochastic.  Returns ``(M, M, *runs)``.
     """
+    F = declared.shape[0]
+    if log_trans.ndim == 2 and F <= END_TABLE_MAX_F:  # one matrix per declared set, gathered
+        sets = np.array(list(itertools.product([False, True], repeat=F))).T  # (F, 2^F)
+        table = _end_prior(log_trans, jnp.asarray(sets), p)  # loop-invariant: hoisted
+        bits = (1 << np.arange(F - 1, -1, -1)).reshape((F,) + (1,) * (declared.ndim - 1))
+        index = jnp.sum(jnp.where(declared, bits, 0), axis=0)  # the set's row in ``sets``
+        return jnp.take(table, index, axis=2)
+    return _end_prior(log_trans, declared, p)
+
+
+END_TABLE_MAX_F = 8
+"""Up to this many faults :func:`end_prior` gathers from a table of the ``2^F`` sets."""
+
+
+def _end_prior(log_trans: jax.Array, declared: jax.Array, p: float) -> jax.Array:
+    """:func:`end_prior` computed for each run's declared set."""
     nb = declared.ndim - 1
     M = declared.shape[0] + 1
     cols = jnp.concatenate([jnp.zeros((1,) + declared.shape[1:], bool), declared])[None]
