@@ -163,25 +163,16 @@ def retract_young(s: EstSettings, declared, since) -> jax.Array:
 def end_prior(log_trans: jax.Array, declared: jax.Array, p: float) -> jax.Array:
     """``end_prior``: every transition into a retraction hypothesis is ``p``.
 
-    The filter's ``stay`` shares ``1 - stay`` among the other models, so at 10 kHz with
-    ``stay = 0.9999`` the prior gives a declared fault's end ``3.3e-5`` per sample, a
-    fault that lasts 0.3 s.  Under air in oil at 2-3 valve wear is weakly observable
-    and trades off against air in oil's size; the mode probabilities then drift to "D -
-    valve wear" on a small edge of fit, mixing pulls model 0's air in oil to that
-    hypothesis' lower value, and once ``retract_young`` lets go (6 s after air in oil's
-    ramp) the present valve wear is retracted: 19 of 64 runs on sim 2's 10 s ramps at 2
-    with 10 s more after the ramp (docs/faults.md, "Ramps", "Session 24").  With ``p`` a
-    fault's end needs evidence, which an abrupt end gives within samples.  Only while
-    two or more faults are declared: a lone fault cannot hide behind another, and its
-    retraction hypothesis (the nominal model) takes the lead for samples at a second
-    fault's abrupt onset, which lets that fault's hypothesis restart (``race_below``);
-    without it sim 1's abrupt faults at 3 had 2 false runs of 64 (air in oil won the race
-    while leakage's hypothesis crept from its floor).
+    The filter's ``stay`` gives a declared fault's end ``(1 - stay) / F`` per sample; when
+    a second fault makes the first weakly observable, that prior drifts the probability to
+    "D - f_j" and the present fault is retracted (docs/faults.md, "Ramps", "Session 24").
+    Only while two or more faults are declared (a lone fault's nominal model must lead at
+    a second fault's onset, so that its hypothesis restarts: ``race_below``).
 
-    ``log_trans`` ``(M, M)`` or ``(M, M, *runs)``, ``declared`` ``(F, *runs)``: while at
-    least two faults are declared, column ``j + 1`` ("D - f_j") of each declared ``j``
-    gets ``p`` off the diagonal, and each row's diagonal takes what its row lost or
-    gained, so rows stay stochastic.  Returns ``(M, M, *runs)``.
+    ``log_trans`` ``(M, M)`` or ``(M, M, *runs)``, ``declared`` ``(F, *runs)``: column
+    ``j + 1`` of each declared ``j`` gets ``p`` off the diagonal, each row's diagonal the
+    rest.  Returns ``(M, M, *runs)``, gathered from the ``2^F`` sets' matrices (bit for
+    bit) for one ``(M, M)`` matrix and up to ``END_TABLE_MAX_F`` faults.
     """
     F = declared.shape[0]
     if log_trans.ndim == 2 and F <= END_TABLE_MAX_F:  # one matrix per declared set, gathered
@@ -193,8 +184,7 @@ def end_prior(log_trans: jax.Array, declared: jax.Array, p: float) -> jax.Array:
     return _end_prior(log_trans, declared, p)
 
 
-END_TABLE_MAX_F = 8
-"""Up to this many faults :func:`end_prior` gathers from a table of the ``2^F`` sets."""
+END_TABLE_MAX_F = 8  # up to this many faults end_prior gathers from the 2^F sets' table
 
 
 def _end_prior(log_trans: jax.Array, declared: jax.Array, p: float) -> jax.Array:
@@ -366,12 +356,10 @@ def reset_unused(s: EstSettings, n: int, st: IMMState, use, declared, since, kee
     With ``floor_z`` (the default since session 16), while a fault is declared and every
     declared fault has settled (its age ``since`` at least ``settle_steps``), a hypothesis
     of probability below :data:`NEAR_FLOOR_MU` whose estimate is within ``floor_z``
-    standard deviations of its floor also counts as held there.  Under a declared air in
-    oil, valve wear is hard to observe: its hypothesis rested at 0.049 (sd 0.038, floor
-    0.02) with 4-5 % of the probability, above ``restart_below``, so it never restarted,
-    and at valve wear's onset it crept (0.049 -> 0.075 in 90 samples) while leakage,
-    restarted from the prior just before, followed the data and was declared
-    (docs/faults.md, "Session 16").  A hypothesis that leads or nearly does (a second fault
+    standard deviations of its floor also counts as held there (under a declared air in
+    oil valve wear's hypothesis rested near its floor above ``restart_below``, never
+    restarted, and crept at valve wear's onset while leakage, restarted, was declared;
+    docs/faults.md, "Session 16").  A hypothesis that leads or nearly does (a second fault
     growing from its floor) is left alone, and so is every hypothesis while a declared fault
     still grows: a look-alike kept fresh then explains that fault's lag (measured on sim
     1's 10 s ramps at 0.3).  Returns the state and the new ``since``.
