@@ -380,6 +380,55 @@ def test_floor_z_restarts_a_hypothesis_resting_near_its_floor_only_while_a_fault
     assert restarted[2.0, 1000, 100] == [False] * 4  # not while air in oil still grows
 
 
+def test_onset_restart_restarts_the_resting_hypotheses_once_model_0_loses_the_lead():
+    """``onset_restart`` (session 26): on the step after model 0 lost the lead (it led at
+    the previous step's start, ``lead0``, and does not now) while a fault is declared,
+    every undeclared hypothesis that does not lead and has probability below
+    ``NEAR_FLOOR_MU`` restarts from the prior (its ``since`` to 1), wherever its estimate
+    is; the leader, a hypothesis at or above ``NEAR_FLOOR_MU``, every hypothesis while
+    nothing is declared or while model 0 still leads, and every one without the setting,
+    keep their estimates."""
+    import functools
+
+    import jax
+    import jax.numpy as jnp
+
+    from uimm_jax.engine.imm import IMMState
+
+    diag = _diag()
+    n, F, M = diag.dyn.n, diag.num_faults, diag.num_models
+    s = diag.settings
+    assert s.onset_restart and rules.NEAR_FLOOR_MU == 0.2  # the default
+    # runs: valve wear declared, air in oil's hypothesis (model 3) leads: 0 after model 0
+    # led, 1 after it did not, 2 with leakage's hypothesis at 0.25; 3 nothing declared;
+    # 4 valve wear declared and model 0 still leading
+    R = 5
+    declared = jnp.asarray([[True, True, True, False, True], [False] * R, [False] * R])
+    lead0 = jnp.asarray([True, False, True, True, True])
+    mean = np.zeros((n + F, M, R))
+    mean[n] = 1.0  # valve wear, every model
+    mean[n + 1, 2] = 0.5  # leakage's own hypothesis: far from its floor (sd 0.1)
+    mean[n + 2, 3] = 1.2  # air in oil's, leading
+    var = np.r_[np.full(n, 1e-4), 1e-4, 0.01, 0.04]
+    cov = np.broadcast_to(np.diag(var)[..., None, None], (n + F, n + F, M, R)).copy()
+    mu = np.array([[0.3] * 4 + [0.7], [0.05] * R, [0.05, 0.05, 0.25, 0.05, 0.05], [0.6] * R])
+    mu[:, 4] = [0.7, 0.05, 0.05, 0.2]
+    mu[:, 2] = [0.1, 0.05, 0.25, 0.6]
+    state = IMMState(jnp.asarray(mean), jnp.asarray(cov), jnp.log(jnp.asarray(mu)))
+    use = diag.model_sets(declared)
+    since = jnp.full((F, R), 1000, jnp.int32)
+    for on in (True, False):
+        reset = jax.jit(functools.partial(rules.reset_unused, s._replace(onset_restart=on), n))
+        got, new_since = reset(state, use, declared, since, None, lead0)
+        again = np.isclose(np.asarray(got.mean[n + 1, 2]), s.prior_mean)
+        np.testing.assert_array_equal(np.asarray(new_since[1]) == 1, again)
+        want = [on, False, False, False, False]
+        assert again.tolist() == want, (on, again)
+        np.testing.assert_allclose(np.asarray(got.mean[n + 2, 3]), 1.2)  # the leader kept
+        kept = ~np.asarray(want)
+        np.testing.assert_allclose(np.asarray(got.mean[n + 1, 2])[kept], 0.5)
+
+
 def test_restore_old_gives_a_kept_fault_its_level_back_only_on_a_clear_drop():
     """``restore_old`` (session 19): ``peak`` keeps each declared fault's level (the
     declaration's estimate, then the anchor's high-water mark, or an anchor brought down on

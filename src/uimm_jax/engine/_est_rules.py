@@ -3,8 +3,8 @@
 Internal: the restarts, floors, walks and re-opening that act on the models' magnitude
 estimates around each IMM cycle, as pure functions of the settings ``s``
 (:class:`~uimm_jax.engine.uimm_est_types.EstSettings`), the state dimension ``n`` and
-arrays with the fault axis leading and the model and run axes trailing.  The module
-doc of :mod:`uimm_jax.engine.uimm_est` says what each rule is for.
+arrays with the fault axis leading and the model and run axes trailing (what each rule
+is for: the module doc of :mod:`uimm_jax.engine.uimm_est`).
 """
 
 from __future__ import annotations
@@ -318,7 +318,7 @@ NEAR_FLOOR_MU = 0.2
 """``floor_z``: a hypothesis near its floor restarts only below this mode probability."""
 
 
-def reset_unused(s: EstSettings, n: int, st: IMMState, use, declared, since, keep=None):
+def reset_unused(s: EstSettings, n: int, st: IMMState, use, declared, since, keep=None, lead0=None):
     """Magnitudes a model does not use: to the bank's belief about them, uncorrelated.
 
     For a declared fault that is model 0's current estimate (so that mixing with the
@@ -327,29 +327,24 @@ def reset_unused(s: EstSettings, n: int, st: IMMState, use, declared, since, kee
     probability ``>= restart_below``, and the prior of a new fault otherwise;
     a hypothesis below that probability restarts from the prior itself.  Mixing
     (eqs. 15-17) then never blends a hypothesis' estimate with the prior while it
-    competes: a blend whose weight grows as the hypothesis loses probability widens
-    the loser's estimate and lowers its likelihood further, which made one of two
-    hypotheses that explain the data almost equally well (valve wear and leakage)
-    win by that feedback alone.
+    competes: a blend whose weight grows as the hypothesis loses probability widens the
+    loser's estimate and lowers its likelihood further (design.md section 5).
 
     ``since`` ``(F, *runs)`` counts the steps since each hypothesis last restarted.  A
-    hypothesis of low probability restarts only once every ``restart_gap`` steps
-    (with ``gap_first_only``: only while nothing is declared), and evolves on its own
-    estimate in between, so that it can gather the evidence to come back: restarting
-    at every step (``restart_gap = 1``) lets a one-step likelihood decide, which never
-    pays for the prior's width (docs/faults.md, "Ramps").
+    hypothesis of low probability restarts once every ``restart_gap`` steps (with
+    ``gap_first_only`` only while nothing is declared) and evolves on its own estimate in
+    between, to gather the evidence to come back (docs/faults.md, "Ramps").
 
     Nor does it restart while the most probable model is an undeclared hypothesis
     whose estimate is below ``race_below`` (a race of faults too small to declare):
     early in a ramp two look-alikes (valve wear, leakage) race where only noise
     tells them apart, and the one behind keeps gathering the evidence (``Kq``) that
     grows with the fault.  An abrupt fault's leader starts from the prior, above the
-    bound.  With ``race_floor`` (and, with ``race_floor_first``, the defaults, only
-    while nothing is declared), while the leader's estimate is below that bound a
-    hypothesis held at its floor does not restart either: over a slow ramp the true
-    fault sits for seconds near the floor, and a hypothesis that restarts from the
-    prior whenever its estimate touches the floor never gathers the evidence to beat
-    a look-alike whose estimate has grown 2-4x the truth (docs/faults.md, "Ramps").
+    bound.  With ``race_floor`` (with ``race_floor_first`` only while nothing is
+    declared), while the leader's estimate is below that bound a hypothesis held at its
+    floor does not restart either: over a slow ramp the true fault sits for seconds near
+    the floor, and one that restarts whenever it touches the floor never gathers the
+    evidence to beat a look-alike grown 2-4x the truth (docs/faults.md, "Ramps").
     A hypothesis in ``keep`` ``(F, *runs)`` (``retract_keep``, :func:`challenger`) does not
     restart at its floor.
 
@@ -362,7 +357,9 @@ def reset_unused(s: EstSettings, n: int, st: IMMState, use, declared, since, kee
     docs/faults.md, "Session 16").  A hypothesis that leads or nearly does (a second fault
     growing from its floor) is left alone, and so is every hypothesis while a declared fault
     still grows: a look-alike kept fresh then explains that fault's lag (measured on sim
-    1's 10 s ramps at 0.3).  Returns the state and the new ``since``.
+    1's 10 s ramps at 0.3).  With ``onset_restart``, once model 0 has lost the lead
+    (``lead0``: it led a step before), the others below it restart too ("Session 26").
+    Returns the state and the new ``since``.
     """
     F = declared.shape[0]
     var_all = mag_var(st.cov, n)
@@ -398,6 +395,9 @@ def reset_unused(s: EstSettings, n: int, st: IMMState, use, declared, since, kee
         held = held & ~(race & ~any_decl if s.race_floor_first else race)
     if keep is not None:
         held = held & ~keep
+    if s.onset_restart and lead0 is not None:  # model 0 has just lost the lead
+        low_mu = st.log_mode_probs[1:] < np.log(NEAR_FLOOR_MU)
+        held = held | (lead0 & (lead != 0) & any_decl & ~lead_f & low_mu)
     live = ~low & ~held  # (F, *runs)
     restart = ~declared & ~live
     since = jnp.where(restart, 1, jnp.minimum(since + 1, gap_cap(s)))

@@ -103,11 +103,10 @@ from uimm_jax.engine.decision import decide
 from uimm_jax.engine.imm import IMMParams, IMMState, imm_step
 from uimm_jax.engine.uimm import Diagnoser, DiagParams, _pick_model
 from uimm_jax.engine.uimm import build_diagnoser as _build_fixed
+from uimm_jax.engine.uimm_est_state import EstInfo, EstState
 from uimm_jax.engine.uimm_est_types import (
     COUNTED_SETTINGS,
-    EstInfo,
     EstSettings,
-    EstState,
     check_est_settings,
     settings_at_dt,
 )
@@ -204,6 +203,7 @@ class UIMMEstDiagnoser(Diagnoser):
             jnp.zeros((F,) + tuple(runs), dtype),
             jnp.zeros((F,) + tuple(runs), jnp.int32),
             jnp.full((F,) + tuple(runs), s.retract_after, jnp.int32),
+            jnp.ones(tuple(runs), bool),
         )
 
     def step(
@@ -225,7 +225,9 @@ class UIMMEstDiagnoser(Diagnoser):
         use = state.cache.use
         if s.retract_pin:  # "D - f_j" holds the other declared faults at model 0's
             use = rules.pinned(use, declared)
-        imm0, since = rules.reset_unused(s, n, state.imm, use, declared, state.since, keep)
+        imm0, since = rules.reset_unused(
+            s, n, state.imm, use, declared, state.since, keep, state.lead0
+        )
         if s.walk_rel:  # a declared fault's walk grows with its size
             imm0 = rules.walk_rel(s, n, imm0, declared, since)
         drift = state.drift
@@ -348,6 +350,7 @@ class UIMMEstDiagnoser(Diagnoser):
             level_sd,
             left,
             decl_age,
+            jnp.argmax(state.imm.log_mode_probs, axis=0) == 0,  # lead0 (onset_restart)
         )
         recognised = jnp.where(any_ret, new_declared, dec.candidate_set)
         step_info = info._replace(
