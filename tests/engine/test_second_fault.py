@@ -15,13 +15,17 @@ from uimm_jax.engine import _est_rules as rules
 from uimm_jax.scenario.parse import parse_scenario
 
 
-def _diag():
+def _setup():
     from uimm_jax.studies.run import setup_scenario
 
     d = short_dict(2, duration=0.3)
     d["filter"].pop("initial_mode_probs")  # written for "uimm": the default for "uimm-est"
     d["events"] = [{"time": 0.2, "fault": "valve_wear"}]
-    return setup_scenario(parse_scenario(d), "uimm-est").diagnoser
+    return setup_scenario(parse_scenario(d), "uimm-est")
+
+
+def _diag():
+    return _setup().diagnoser
 
 
 def test_walk_rel_newest_grows_the_walk_of_the_fault_declared_last_while_young():
@@ -380,14 +384,16 @@ def test_floor_z_restarts_a_hypothesis_resting_near_its_floor_only_while_a_fault
     assert restarted[2.0, 1000, 100] == [False] * 4  # not while air in oil still grows
 
 
-def test_onset_restart_restarts_the_resting_hypotheses_once_model_0_loses_the_lead():
-    """``onset_restart`` (session 26): on the step after model 0 lost the lead (it led at
-    the previous step's start, ``lead0``, and does not now) while a fault is declared,
-    every undeclared hypothesis that does not lead and has probability below
-    ``NEAR_FLOOR_MU`` restarts from the prior (its ``since`` to 1), wherever its estimate
-    is; the leader, a hypothesis at or above ``NEAR_FLOOR_MU``, every hypothesis while
-    nothing is declared or while model 0 still leads, and every one without the setting,
-    keep their estimates."""
+def test_onset_restart_restarts_the_resting_hypotheses_when_model_0_loses_a_clear_lead():
+    """``onset_restart`` (session 26): while model 0 does not lead, within
+    ``onset_restart`` steps of its probability last being at least ``ONSET_CALM`` at a
+    step's start (``calm``) and while a fault is declared, every undeclared hypothesis that
+    does not lead, has probability below ``NEAR_FLOOR_MU`` and has not restarted within
+    ``onset_restart`` steps restarts from the prior (its ``since`` to 1), wherever its
+    estimate is; the leader, a hypothesis at or above ``NEAR_FLOOR_MU``, one restarted
+    within the window, every hypothesis while nothing is declared, while model 0 leads or
+    long after its clear lead, and every one with ``onset_restart = 0``, keep their
+    estimates.  ``step`` counts ``calm`` from the carried mode probabilities."""
     import functools
 
     import jax
@@ -398,35 +404,46 @@ def test_onset_restart_restarts_the_resting_hypotheses_once_model_0_loses_the_le
     diag = _diag()
     n, F, M = diag.dyn.n, diag.num_faults, diag.num_models
     s = diag.settings
-    assert s.onset_restart and rules.NEAR_FLOOR_MU == 0.2  # the default
-    # runs: valve wear declared, air in oil's hypothesis (model 3) leads: 0 after model 0
-    # led, 1 after it did not, 2 with leakage's hypothesis at 0.25; 3 nothing declared;
-    # 4 valve wear declared and model 0 still leading
-    R = 5
-    declared = jnp.asarray([[True, True, True, False, True], [False] * R, [False] * R])
-    lead0 = jnp.asarray([True, False, True, True, True])
+    assert s.onset_restart == 20 and rules.NEAR_FLOOR_MU == 0.2  # the defaults
+    # runs: valve wear declared, air in oil's hypothesis (model 3) leads: 0 five steps
+    # after model 0's clear lead, 1 a hundred steps after, 2 with leakage's hypothesis at
+    # 0.25; 3 nothing declared; 4 valve wear declared and model 0 leading; 5 as 0 with
+    # leakage's hypothesis restarted 10 steps ago
+    R = 6
+    declared = jnp.asarray([[True, True, True, False, True, True], [False] * R, [False] * R])
+    calm = jnp.asarray([5, 100, 5, 5, 0, 5], jnp.int32)
     mean = np.zeros((n + F, M, R))
     mean[n] = 1.0  # valve wear, every model
     mean[n + 1, 2] = 0.5  # leakage's own hypothesis: far from its floor (sd 0.1)
     mean[n + 2, 3] = 1.2  # air in oil's, leading
     var = np.r_[np.full(n, 1e-4), 1e-4, 0.01, 0.04]
     cov = np.broadcast_to(np.diag(var)[..., None, None], (n + F, n + F, M, R)).copy()
-    mu = np.array([[0.3] * 4 + [0.7], [0.05] * R, [0.05, 0.05, 0.25, 0.05, 0.05], [0.6] * R])
-    mu[:, 4] = [0.7, 0.05, 0.05, 0.2]
+    mu = np.array([[0.3] * R, [0.05] * R, [0.05] * R, [0.6] * R])
     mu[:, 2] = [0.1, 0.05, 0.25, 0.6]
+    mu[:, 4] = [0.7, 0.05, 0.05, 0.2]
     state = IMMState(jnp.asarray(mean), jnp.asarray(cov), jnp.log(jnp.asarray(mu)))
     use = diag.model_sets(declared)
-    since = jnp.full((F, R), 1000, jnp.int32)
-    for on in (True, False):
-        reset = jax.jit(functools.partial(rules.reset_unused, s._replace(onset_restart=on), n))
-        got, new_since = reset(state, use, declared, since, None, lead0)
+    since = jnp.full((F, R), 1000, jnp.int32).at[1, 5].set(10)
+    for window in (20, 0):
+        s1 = s._replace(onset_restart=window)
+        reset = jax.jit(functools.partial(rules.reset_unused, s1, n))
+        got, new_since = reset(state, use, declared, since, None, calm)
         again = np.isclose(np.asarray(got.mean[n + 1, 2]), s.prior_mean)
         np.testing.assert_array_equal(np.asarray(new_since[1]) == 1, again)
-        want = [on, False, False, False, False]
-        assert again.tolist() == want, (on, again)
+        want = [window > 0, False, False, False, False, False]
+        assert again.tolist() == want, (window, again)
         np.testing.assert_allclose(np.asarray(got.mean[n + 2, 3]), 1.2)  # the leader kept
-        kept = ~np.asarray(want)
-        np.testing.assert_allclose(np.asarray(got.mean[n + 1, 2])[kept], 0.5)
+        np.testing.assert_allclose(np.asarray(got.mean[n + 1, 2])[~np.asarray(want)], 0.5)
+    # calm in a step: 0 while model 0 starts a step at >= 0.9, else one more (to the cap)
+    params = _setup().params
+    st = diag.init(np.zeros(n), np.eye(n), [0.95, 0.05 / 3, 0.05 / 3, 0.05 / 3], runs=(3,))
+    assert np.all(np.asarray(st.calm) == rules.CALM_CAP)
+    lp = np.log(np.array([[0.95, 0.5, 0.5], [0.02, 0.3, 0.3], [0.02, 0.1, 0.1], [0.01, 0.1, 0.1]]))
+    st = st._replace(imm=st.imm._replace(log_mode_probs=jnp.asarray(lp)))
+    st = st._replace(calm=jnp.asarray([7, 7, rules.CALM_CAP], jnp.int32))
+    z = jnp.zeros((3, 3))
+    new, _ = jax.jit(diag.step)(st, params, jnp.zeros((1, 3)), z)
+    np.testing.assert_array_equal(np.asarray(new.calm), [0, 8, rules.CALM_CAP])
 
 
 def test_restore_old_gives_a_kept_fault_its_level_back_only_on_a_clear_drop():

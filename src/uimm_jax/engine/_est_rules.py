@@ -314,11 +314,12 @@ def slot_of(declared: jax.Array) -> jax.Array:
     return jnp.where(declared, 0, own)
 
 
-NEAR_FLOOR_MU = 0.2
-"""``floor_z``: a hypothesis near its floor restarts only below this mode probability."""
+NEAR_FLOOR_MU, ONSET_CALM, CALM_CAP = 0.2, 0.9, 1 << 20
+"""``floor_z``: a hypothesis near its floor restarts only below the first mode probability;
+``onset_restart``: model 0's clear lead, and the cap of ``EstState.calm``."""
 
 
-def reset_unused(s: EstSettings, n: int, st: IMMState, use, declared, since, keep=None, lead0=None):
+def reset_unused(s: EstSettings, n: int, st: IMMState, use, declared, since, keep=None, calm=None):
     """Magnitudes a model does not use: to the bank's belief about them, uncorrelated.
 
     For a declared fault that is model 0's current estimate (so that mixing with the
@@ -335,16 +336,16 @@ def reset_unused(s: EstSettings, n: int, st: IMMState, use, declared, since, kee
     ``gap_first_only`` only while nothing is declared) and evolves on its own estimate in
     between, to gather the evidence to come back (docs/faults.md, "Ramps").
 
-    Nor does it restart while the most probable model is an undeclared hypothesis
-    whose estimate is below ``race_below`` (a race of faults too small to declare):
-    early in a ramp two look-alikes (valve wear, leakage) race where only noise
-    tells them apart, and the one behind keeps gathering the evidence (``Kq``) that
-    grows with the fault.  An abrupt fault's leader starts from the prior, above the
-    bound.  With ``race_floor`` (with ``race_floor_first`` only while nothing is
-    declared), while the leader's estimate is below that bound a hypothesis held at its
-    floor does not restart either: over a slow ramp the true fault sits for seconds near
-    the floor, and one that restarts whenever it touches the floor never gathers the
-    evidence to beat a look-alike grown 2-4x the truth (docs/faults.md, "Ramps").
+    Nor does it restart while the most probable model is an undeclared hypothesis whose
+    estimate is below ``race_below`` (a race of faults too small to declare): early in a
+    ramp two look-alikes (valve wear, leakage) race where only noise tells them apart, and
+    the one behind keeps gathering the evidence (``Kq``) that grows with the fault.  An
+    abrupt fault's leader starts from the prior, above the bound.  With ``race_floor``
+    (with ``race_floor_first`` only while nothing is declared), while the leader's
+    estimate is below that bound a hypothesis held at its floor does not restart either:
+    over a slow ramp the true fault sits for seconds near the floor, and one that restarts
+    whenever it touches the floor never gathers the evidence to beat a look-alike grown
+    2-4x the truth (docs/faults.md, "Ramps").
     A hypothesis in ``keep`` ``(F, *runs)`` (``retract_keep``, :func:`challenger`) does not
     restart at its floor.
 
@@ -357,8 +358,7 @@ def reset_unused(s: EstSettings, n: int, st: IMMState, use, declared, since, kee
     docs/faults.md, "Session 16").  A hypothesis that leads or nearly does (a second fault
     growing from its floor) is left alone, and so is every hypothesis while a declared fault
     still grows: a look-alike kept fresh then explains that fault's lag (measured on sim
-    1's 10 s ramps at 0.3).  With ``onset_restart``, once model 0 has lost the lead
-    (``lead0``: it led a step before), the others below it restart too ("Session 26").
+    1's 10 s ramps at 0.3); ``onset_restart``: "Session 26", ``calm`` its counter.
     Returns the state and the new ``since``.
     """
     F = declared.shape[0]
@@ -395,9 +395,9 @@ def reset_unused(s: EstSettings, n: int, st: IMMState, use, declared, since, kee
         held = held & ~(race & ~any_decl if s.race_floor_first else race)
     if keep is not None:
         held = held & ~keep
-    if s.onset_restart and lead0 is not None:  # model 0 has just lost the lead
-        low_mu = st.log_mode_probs[1:] < np.log(NEAR_FLOOR_MU)
-        held = held | (lead0 & (lead != 0) & any_decl & ~lead_f & low_mu)
+    if s.onset_restart and calm is not None:  # model 0 has just lost a clear lead
+        onset = (lead != 0) & (calm <= s.onset_restart) & any_decl & (since > s.onset_restart)
+        held = held | (onset & ~lead_f & (st.log_mode_probs[1:] < np.log(NEAR_FLOOR_MU)))
     live = ~low & ~held  # (F, *runs)
     restart = ~declared & ~live
     since = jnp.where(restart, 1, jnp.minimum(since + 1, gap_cap(s)))
@@ -418,9 +418,9 @@ def reset_unused(s: EstSettings, n: int, st: IMMState, use, declared, since, kee
 def floor(s: EstSettings, n: int, st: IMMState, declared, since) -> IMMState:
     """An undeclared hypothesis' own magnitude: mean ``>= floor_mean``, sd ``>= floor_sd``.
 
-    The hypothesis is "fault j is present": without the bound it would settle on
-    nominal in fault-free data (a copy of model 0 that keeps a share of the
-    probability) and be slow to follow a fault that appears.
+    The hypothesis is "fault j is present": without the bound it would settle on nominal
+    in fault-free data (a copy of model 0 with a share of the probability) and be slow to
+    follow a fault that appears.
     While a fault is declared the bound is ``post_floor_mean`` if set: a challenger
     then follows a second fault from a smaller size (docs/faults.md, "Session 9").
     Raising a variance adds a PSD matrix (the covariance stays PSD).

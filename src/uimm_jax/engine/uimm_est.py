@@ -203,7 +203,7 @@ class UIMMEstDiagnoser(Diagnoser):
             jnp.zeros((F,) + tuple(runs), dtype),
             jnp.zeros((F,) + tuple(runs), jnp.int32),
             jnp.full((F,) + tuple(runs), s.retract_after, jnp.int32),
-            jnp.ones(tuple(runs), bool),
+            jnp.full(tuple(runs), rules.CALM_CAP, jnp.int32),
         )
 
     def step(
@@ -225,9 +225,9 @@ class UIMMEstDiagnoser(Diagnoser):
         use = state.cache.use
         if s.retract_pin:  # "D - f_j" holds the other declared faults at model 0's
             use = rules.pinned(use, declared)
-        imm0, since = rules.reset_unused(
-            s, n, state.imm, use, declared, state.since, keep, state.lead0
-        )
+        clear = state.imm.log_mode_probs[0] >= np.log(rules.ONSET_CALM)  # model 0 leads
+        calm = jnp.where(clear, 0, jnp.minimum(state.calm + 1, rules.CALM_CAP)).astype(jnp.int32)
+        imm0, since = rules.reset_unused(s, n, state.imm, use, declared, state.since, keep, calm)
         if s.walk_rel:  # a declared fault's walk grows with its size
             imm0 = rules.walk_rel(s, n, imm0, declared, since)
         drift = state.drift
@@ -350,7 +350,7 @@ class UIMMEstDiagnoser(Diagnoser):
             level_sd,
             left,
             decl_age,
-            jnp.argmax(state.imm.log_mode_probs, axis=0) == 0,  # lead0 (onset_restart)
+            calm,
         )
         recognised = jnp.where(any_ret, new_declared, dec.candidate_set)
         step_info = info._replace(

@@ -47,8 +47,9 @@ class EstState(NamedTuple):
             last near it (``_est_rules.level_left``; ``restore_old``; zeros while off).
         decl_age: ``(F, *runs)`` int32, steps since each fault's last declaration, up to
             ``retract_after`` (where it starts; ``_est_rules.declaration_age``).
-        lead0: ``(*runs,)`` bool, model 0 led at the previous step's start
-            (``onset_restart``; true at the start).
+        calm: ``(*runs,)`` int32, steps since model 0's probability was last at least
+            ``ONSET_CALM`` at a step's start, up to ``CALM_CAP`` (``onset_restart``; the
+            cap at the start).
     """
 
     imm: IMMState
@@ -67,7 +68,7 @@ class EstState(NamedTuple):
     level_sd: jax.Array
     left: jax.Array
     decl_age: jax.Array
-    lead0: jax.Array
+    calm: jax.Array
 
 
 class EstInfo(NamedTuple):
