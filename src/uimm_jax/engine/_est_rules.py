@@ -32,7 +32,7 @@ def gap_cap(s: EstSettings) -> int:
     """The largest restart gap of ``s`` (``since`` counts up to it)."""
     gaps = (s.restart_gap, s.floor_gap, s.post_gap, s.post_floor_gap, s.low_floor_age)
     young = s.retract_young if growth_ages(s) else 0
-    return max(*gaps, s.settle_steps if s.walk_settled else 0, young)
+    return max(*gaps, s.settle_steps if s.walk_settled else 0, young, s.onset_restart + 1)
 
 
 def floor_mean(s: EstSettings, declared: jax.Array, since: jax.Array, models: bool = False):
