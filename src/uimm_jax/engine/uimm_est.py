@@ -225,8 +225,10 @@ class UIMMEstDiagnoser(Diagnoser):
         use = state.cache.use
         if s.retract_pin:  # "D - f_j" holds the other declared faults at model 0's
             use = rules.pinned(use, declared)
-        clear = state.imm.log_mode_probs[0] >= np.log(rules.ONSET_CALM)  # model 0 leads
-        calm = jnp.where(clear, 0, jnp.minimum(state.calm + 1, rules.CALM_CAP)).astype(jnp.int32)
+        calm = state.calm
+        if s.onset_restart:  # the steps since model 0's last clear lead
+            clear = state.imm.log_mode_probs[0] >= np.log(rules.ONSET_CALM)
+            calm = jnp.where(clear, 0, jnp.minimum(calm + 1, rules.CALM_CAP)).astype(jnp.int32)
         imm0, since = rules.reset_unused(s, n, state.imm, use, declared, state.since, keep, calm)
         if s.walk_rel:  # a declared fault's walk grows with its size
             imm0 = rules.walk_rel(s, n, imm0, declared, since)
