@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from _robustness_helpers import short_dict
-from uimm_jax.engine import _est_rules as rules
+from uimm_jax.engine import _est_drift as drift_rules
 from uimm_jax.engine.uimm_est_types import EstSettings
 from uimm_jax.scenario.parse import parse_scenario
 
@@ -22,12 +22,12 @@ def test_drift_update_is_a_clipped_exponential_average():
     restarted[[10, 30], [1, 2]] = True
     drift, want = jnp.zeros(3), np.zeros(3)
     for move, fresh in zip(moves, restarted, strict=True):
-        drift = rules.drift_update(s, drift, jnp.asarray(move), jnp.asarray(fresh))
-        want = want + (np.clip(move, -rules.DRIFT_CLIP, rules.DRIFT_CLIP) - want) / 20
+        drift = drift_rules.drift_update(s, drift, jnp.asarray(move), jnp.asarray(fresh))
+        want = want + (np.clip(move, -drift_rules.DRIFT_CLIP, drift_rules.DRIFT_CLIP) - want) / 20
         want[fresh] = 0.0  # a restarted hypothesis starts again
     np.testing.assert_allclose(np.asarray(drift), want, rtol=1e-12, atol=0)
     # a jump (an abrupt fault's estimate) counts as DRIFT_CLIP per step at most
-    assert np.all(want <= rules.DRIFT_CLIP) and np.all(want > 0)
+    assert np.all(want <= drift_rules.DRIFT_CLIP) and np.all(want > 0)
 
 
 def test_drift_walk_adds_the_growth_variance_to_declared_faults_and_own_hypotheses():
@@ -47,7 +47,7 @@ def test_drift_walk_adds_the_growth_variance_to_declared_faults_and_own_hypothes
     cov = np.einsum("ijmr,kjmr->ikmr", a, a) + 1e-3 * np.eye(n + F)[..., None, None]
     st = IMMState(jnp.zeros((n + F, M, R)), jnp.asarray(cov), jnp.zeros((M, R)))
     since = jnp.full((F, R), s.settle_steps)  # without drift_lead a fault's age is not read
-    got = np.asarray(rules.drift_walk(s, n, st, declared, drift, since).cov) - cov
+    got = np.asarray(drift_rules.drift_walk(s, n, st, declared, drift, since).cov) - cov
     want = np.zeros_like(cov)
     for j in range(F):
         for r in range(R):
@@ -82,7 +82,7 @@ def test_drift_lead_gives_the_walk_to_the_leading_undeclared_hypothesis_only():
     st = IMMState(jnp.zeros((n + F, M, R)), jnp.asarray(cov), jnp.asarray(logp))
     since = np.array([[0, s.settle_steps, 0], [0, 0, 0], [10, 0, 0]])  # declared: ages
     args = (jnp.asarray(declared), jnp.asarray(drift), jnp.asarray(since))
-    got = np.asarray(rules.drift_walk(s, n, st, *args).cov)
+    got = np.asarray(drift_rules.drift_walk(s, n, st, *args).cov)
     extra = (3.0 * 2e-3) ** 2 - s.walk**2
     want = cov.copy()
     for r in range(R):
@@ -101,7 +101,7 @@ def test_drift_lead_gives_the_walk_to_the_leading_undeclared_hypothesis_only():
     assert np.all(got[n + 0, n + 0, :, 1] == 1)
     # run 2: a tie (0.3, 0.3) between the undeclared faults 0 and 1 walks both
     assert got[n + 0, n + 0, 1, 2] > 1 and got[n + 1, n + 1, 2, 2] > 1
-    plain = rules.drift_walk(s._replace(drift_lead=False), n, st, *args)
+    plain = drift_rules.drift_walk(s._replace(drift_lead=False), n, st, *args)
     assert np.all(np.asarray(plain.cov) >= got)
 
 

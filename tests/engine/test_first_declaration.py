@@ -23,3 +23,22 @@ def test_declare_rel_refuses_a_loose_estimate_only_while_nothing_is_declared():
     np.testing.assert_array_equal(on[1], [True, False, False, True])
     np.testing.assert_array_equal(off[1], [True, True, False, True])
     np.testing.assert_array_equal(on[0], [False, False, False, True])
+
+
+def test_declare_trend_refuses_an_estimate_projected_below_declare_min():
+    """With ``declare_trend = H`` a new declaration also needs ``est + H min(trend, 0) >=
+    declare_min`` (docs/faults.md, "Session 27"): a falling estimate is refused, a rising or
+    steady one is not, and a declared fault is not a new declaration (``cand_set``)."""
+    H, s = 500, EstSettings(declare_trend=500, declare_rel=0.0)
+    # one fault x runs: falling fast (sim 2's leakage look-alike), falling slowly,
+    # steady, rising, and falling fast from far above declare_min
+    est = jnp.asarray([[0.19, 0.19, 0.19, 0.16, 0.5]])
+    trend = jnp.asarray([[-2.2e-4, -5e-5, 0.0, 3e-4, -2.2e-4]])
+    declared = jnp.zeros(est.shape, bool)
+    sd = jnp.full(est.shape, 0.01)
+    got = np.asarray(declarable(s, declared, est, sd, trend))
+    want = np.asarray(est + H * np.minimum(trend, 0.0) >= s.declare_min)
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(got[0], [False, True, True, True, True])
+    off = declarable(EstSettings(declare_rel=0.0, declare_trend=0), declared, est, sd, trend)
+    np.testing.assert_array_equal(np.asarray(off[0]), [True] * 5)

@@ -502,3 +502,46 @@ def test_restore_old_gives_a_kept_fault_its_level_back_only_on_a_clear_drop():
     want[n:] = np.where(want_back[:, None], level[:, None], mean[n:])
     np.testing.assert_array_equal(out.mean, want)
     np.testing.assert_array_equal(out.cov, cov)
+
+
+def test_declare_trend_is_each_estimates_clipped_average_move_after_its_wait():
+    """``EstState.trend`` (``declare_trend``, session 27) over 0.3 s of sim 2 with valve wear
+    at 0.2 s: each step it is ``trend + (clip(est - before) - trend) / W`` (``W =
+    trend_steps``, ``before`` the estimate at the cycle's start: the last step's for a
+    hypothesis that did not restart), 0 for an undeclared hypothesis within ``W`` steps of
+    its restart, and with ``declare_trend = 0`` it stays 0."""
+    import jax
+    import jax.numpy as jnp
+
+    from uimm_jax.engine import _est_drift as drift_rules
+    from uimm_jax.studies.run import simulate_scenario
+
+    setup = _setup()
+    diag, params = setup.diagnoser, setup.params
+    s = diag.settings
+    W = drift_rules.trend_steps(s)
+    assert (s.declare_trend, W) == (500, 100)  # the default
+    data = simulate_scenario(setup, seed=0)
+    xs = (jnp.asarray(data["u"]), jnp.asarray(data["y"]))
+
+    def run(d):
+        def body(st, uy):
+            st2, info = d.step(st, params, uy[0], uy[1], with_cov=False)
+            return st2, (st2.trend, st2.since, st2.declared, info.magnitude)
+
+        return jax.jit(lambda s0: jax.lax.scan(body, s0, xs)[1])(setup.init_state)
+
+    trend, since, declared, est = map(np.asarray, run(diag))
+    assert declared[-1].any()  # valve wear is declared: the run covers both phases
+    young = ~declared & (since < W)
+    assert np.all(trend[young] == 0.0) and (~young).any()
+    # where nothing restarted at step k, the average takes the estimate's clipped move
+    k = np.arange(1, len(trend))
+    kept = (since[k] == since[k - 1] + 1) & ~young[k] & (declared[k] == declared[k - 1])
+    move = np.clip(est[k] - est[k - 1], -drift_rules.DRIFT_CLIP, drift_rules.DRIFT_CLIP)
+    want = trend[k - 1] + (move - trend[k - 1]) / W
+    assert kept.sum() > 1000
+    np.testing.assert_allclose(trend[k][kept], want[kept], rtol=1e-9, atol=1e-15)
+    assert np.abs(trend).max() > 0
+    off = np.asarray(run(dataclasses.replace(diag, settings=s._replace(declare_trend=0)))[0])
+    assert np.all(off == 0.0)

@@ -63,7 +63,9 @@ hypotheses at the bound, where neither can be declared).
 * declare ``j`` when ``D + f_j`` is the most probable model, with ``mu >= threshold`` for
   ``hold`` samples and its estimate of ``a_j`` at least ``declare_min`` (with
   ``declare_rel``, 0.15 by default, a first declaration also needs the estimate's sd at most
-  ``declare_rel`` of it; docs/faults.md, "Session 11");
+  ``declare_rel`` of it; docs/faults.md, "Session 11"; with ``declare_trend``, 500 by
+  default, the estimate projected that many steps ahead at its recent fall must still be
+  at least ``declare_min``: ``_est_drift``, docs/faults.md, "Session 27");
 * retract ``j`` when ``D - f_j`` wins in the same way (with ``retract_young``, for a
   ``j`` that has not grown lately, only while no other declared fault has), or when model 0's
   estimate of ``a_j`` stays below ``retract_below`` for ``hold`` samples (the estimate
@@ -95,6 +97,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from uimm_jax.engine import _est_drift as drift_rules
 from uimm_jax.engine import _est_rebuild as gather
 from uimm_jax.engine import _est_rules as rules
 from uimm_jax.engine.augmented import AugCache, AugmentedDynamics
@@ -204,6 +207,7 @@ class UIMMEstDiagnoser(Diagnoser):
             jnp.zeros((F,) + tuple(runs), jnp.int32),
             jnp.full((F,) + tuple(runs), s.retract_after, jnp.int32),
             jnp.full(tuple(runs), rules.CALM_CAP, jnp.int32),
+            jnp.zeros((F,) + tuple(runs), dtype),
         )
 
     def step(
@@ -234,7 +238,7 @@ class UIMMEstDiagnoser(Diagnoser):
             imm0 = rules.walk_rel(s, n, imm0, declared, since)
         drift = state.drift
         if s.drift_walk:  # a fault's walk follows its estimate's growth
-            imm0 = rules.drift_walk(s, n, imm0, declared, drift, since)
+            imm0 = drift_rules.drift_walk(s, n, imm0, declared, drift, since)
         q_aug = jnp.zeros((n + F, n + F), dtype).at[:n, :n].set(params.imm.Q)
         q_aug = q_aug.at[n:, n:].set(jnp.eye(F, dtype=dtype) * s.walk**2)
         if s.walk_settled:  # a fault declared settle_steps ago walks slower: Q per run
@@ -259,13 +263,19 @@ class UIMMEstDiagnoser(Diagnoser):
         est_sd = jnp.sqrt(jnp.maximum(jnp.sum(jnp.where(pick, var, 0.0), axis=1), 0.0))
         if s.drift_walk:  # the step's move of each estimate, from after the rules
             before = jnp.sum(jnp.where(pick, imm0.mean[n:], 0.0), axis=1)
-            young = ~declared & (since < rules.DRIFT_WAIT * s.drift_steps)
-            drift = rules.drift_update(s, drift, est - before, young)
+            young = ~declared & (since < drift_rules.DRIFT_WAIT * s.drift_steps)
+            drift = drift_rules.drift_update(s, drift, est - before, young)
+        trend = state.trend
+        if s.declare_trend:  # each estimate's recent trend (a new declaration's test)
+            before = jnp.sum(jnp.where(pick, imm0.mean[n:], 0.0), axis=1)
+            steps = drift_rules.trend_steps(s)
+            young = ~declared & (since < steps)
+            trend = drift_rules.drift_update(s, trend, est - before, young, steps)
 
         def cand_set(c):
             full = self._candidate_set(c, declared)
             new = full & ~declared
-            big = rules.declarable(s, declared, est, est_sd)
+            big = rules.declarable(s, declared, est, est_sd, trend)
             return jnp.where(jnp.any(new & ~big, axis=0), declared, full)
 
         dec = decide(
@@ -353,6 +363,7 @@ class UIMMEstDiagnoser(Diagnoser):
             left,
             decl_age,
             calm,
+            trend,
         )
         recognised = jnp.where(any_ret, new_declared, dec.candidate_set)
         step_info = info._replace(

@@ -50,6 +50,8 @@ class EstState(NamedTuple):
         calm: ``(*runs,)`` int32, steps since model 0's probability was last at least
             ``ONSET_CALM`` at a step's start, up to ``CALM_CAP`` (``onset_restart``; the
             cap at the start).
+        trend: ``(F, *runs)`` each fault's estimate's change per step averaged over
+            ``_est_drift.trend_steps`` steps (``declare_trend``; zeros while it is off).
     """
 
     imm: IMMState
@@ -69,6 +71,7 @@ class EstState(NamedTuple):
     left: jax.Array
     decl_age: jax.Array
     calm: jax.Array
+    trend: jax.Array
 
 
 class EstInfo(NamedTuple):

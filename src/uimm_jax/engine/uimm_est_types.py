@@ -45,7 +45,8 @@ class EstSettings(NamedTuple):
     ``retract_keep`` (session 12), ``settle_low`` (13), ``retract_young`` (14),
     ``reopen_old=0.01``, ``settle_creep=30000``, ``retract_rise=1000`` (15), ``floor_z=2``
     (16), ``retract_below=0.05`` (18), ``restore_old=10``, ``restore_steps=5000`` (19) and
-    ``retract_after=4000`` (21); and ``end_prior=1e-6`` (25) and ``onset_restart=20`` (26),
+    ``retract_after=4000`` (21); and ``end_prior=1e-6`` (25), ``onset_restart=20`` (26)
+    and ``declare_trend=500`` (27),
     chosen on the acceptance cells pooled over seeds 0-4 (320 runs a cell) rather than
     at seed 0 alone.  Each one's figures (false runs,
     coverage, delays, per cell and against the defaults before it) are in docs/faults.md,
@@ -199,7 +200,7 @@ class EstSettings(NamedTuple):
             drift_walk * d)``, ``d`` the growth of its estimate per step averaged over
             ``drift_steps`` steps (``EstState.drift``): an estimate that moves away from
             nominal at the rate of a fast ramp gets a walk that follows it, and its walk
-            falls back once the fault stops growing (see ``_est_rules.drift_walk``;
+            falls back once the fault stops growing (see ``_est_drift.drift_walk``;
             docs/faults.md, "Ramps", "Session 19"; 0: off).
         drift_steps: the steps of that average (an exponential one).
         restore_old: on a declaration, a fault that stays declared whose estimate lies
@@ -225,7 +226,7 @@ class EstSettings(NamedTuple):
             undeclared hypothesis while it leads the other undeclared ones, and to a
             declared fault until it settles (its age below ``settle_steps``, a growth
             age with ``walk_settled`` and ``settle_move`` on; see
-            ``_est_rules.drift_walk``; docs/faults.md, "Ramps", "Session 22").
+            ``_est_drift.drift_walk``; docs/faults.md, "Ramps", "Session 22").
         onset_restart: steps: while model 0 does not lead, within this many steps of its
             probability last being at least ``ONSET_CALM`` (0.9) at a step's start (a new
             fault's onset) and while a fault is declared, every undeclared hypothesis that
@@ -245,6 +246,16 @@ class EstSettings(NamedTuple):
             1e-6, a fault that lasts 100 s, the default since session 25: the same
             acceptance cells over seeds 0-4, far fewer present faults lost on longer
             runs; docs/faults.md, "Session 25").
+        declare_trend: steps: a fault is declared only if its estimate, projected this
+            many steps ahead at its recent fall, is still at least ``declare_min`` (the
+            fall: its change per step averaged over a fifth of as many steps, counted
+            from as many steps after its hypothesis' last restart;
+            ``_est_drift.trend_steps``): a look-alike that explains a new fault's first
+            samples converges towards nominal and is declared on the way down (sim 2's
+            10 s ramps at 0.3: leakage declared at 0.19 and falling, retracted 0.13 s
+            later; see ``_est_rules.declarable``;
+            docs/faults.md, "Session 27"; 0: off; 500, 50 ms at ``steps_dt``, the default
+            since session 27).
     """
 
     walk: float = 1e-3
@@ -294,6 +305,7 @@ class EstSettings(NamedTuple):
     drift_lead: bool = True
     end_prior: float = 1e-6
     onset_restart: int = 20
+    declare_trend: int = 500
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -340,6 +352,7 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "retract_after": (0, False, "steps; 0: off"),
     "end_prior": (0.0, False, "a probability per sample; 0: off"),
     "onset_restart": (0, False, "steps; 0: off"),
+    "declare_trend": (0, False, "steps; 0: off"),
 }
 END_PRIOR_MAX = 0.01
 """The largest ``end_prior``: a row of the transition matrix keeps a positive diagonal
@@ -477,7 +490,7 @@ def est_value_from_text(name: str, text: str) -> Any:
 COUNTED_SETTINGS = ("restart_gap", "floor_gap", "post_gap", "settle_steps", "post_floor_gap")
 COUNTED_SETTINGS += ("retract_hold", "low_floor_age", "retract_young", "settle_creep")
 COUNTED_SETTINGS += ("retract_rise", "drift_steps", "restore_steps", "retract_after")
-COUNTED_SETTINGS += ("onset_restart",)
+COUNTED_SETTINGS += ("onset_restart", "declare_trend")
 """The settings counted in steps, which :func:`settings_at_dt` converts."""
 
 
