@@ -28,11 +28,13 @@ it has run ``DRIFT_WAIT * drift_steps`` steps since its last restart (:func:`dri
 
 
 def drift_update(s: EstSettings, drift, move, fresh, steps=None):
-    """``drift_walk``'s average: ``drift + (clip(move) - drift) / drift_steps``.
+    """An estimate's average move: ``drift + (clip(move) - drift) / steps``.
 
     ``move`` ``(F, *runs)`` is this step's change of each estimate by the IMM cycle (the
     filter's correction, after the rules' restarts and walks), clipped to
-    ``+-DRIFT_CLIP``; an exponential average over ``drift_steps`` steps.  A hypothesis
+    ``+-DRIFT_CLIP``; an exponential average over ``steps`` steps (``drift_steps`` for
+    ``drift_walk``'s ``EstState.drift``; :func:`trend_steps` for ``declare_trend``'s
+    ``EstState.trend``, whose caller passes its own wait as ``fresh``).  A hypothesis
     that restarted from the prior within the last ``DRIFT_WAIT * drift_steps`` steps
     (``fresh``) keeps 0: its estimate's moves are the prior's distance to the data, not a
     growth (counted from 20 steps on, a look-alike restarted at a fault's onset converged

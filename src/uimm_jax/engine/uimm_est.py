@@ -261,16 +261,16 @@ class UIMMEstDiagnoser(Diagnoser):
         pick = slot[:, None] == np.arange(self.num_models).reshape((1, -1) + (1,) * (slot.ndim - 1))
         est = jnp.sum(jnp.where(pick, mags, 0.0), axis=1)  # (F, *runs)
         est_sd = jnp.sqrt(jnp.maximum(jnp.sum(jnp.where(pick, var, 0.0), axis=1), 0.0))
-        if s.drift_walk:  # the step's move of each estimate, from after the rules
-            before = jnp.sum(jnp.where(pick, imm0.mean[n:], 0.0), axis=1)
+        if s.drift_walk or s.declare_trend:  # the step's move of each estimate
+            move = est - jnp.sum(jnp.where(pick, imm0.mean[n:], 0.0), axis=1)  # after the rules
+        if s.drift_walk:
             young = ~declared & (since < drift_rules.DRIFT_WAIT * s.drift_steps)
-            drift = drift_rules.drift_update(s, drift, est - before, young)
+            drift = drift_rules.drift_update(s, drift, move, young)
         trend = state.trend
         if s.declare_trend:  # each estimate's recent trend (a new declaration's test)
-            before = jnp.sum(jnp.where(pick, imm0.mean[n:], 0.0), axis=1)
             steps = drift_rules.trend_steps(s)
             young = ~declared & (since < steps)
-            trend = drift_rules.drift_update(s, trend, est - before, young, steps)
+            trend = drift_rules.drift_update(s, trend, move, young, steps)
 
         def cand_set(c):
             full = self._candidate_set(c, declared)
