@@ -42,3 +42,20 @@ def test_declare_trend_refuses_an_estimate_projected_below_declare_min():
     np.testing.assert_array_equal(got[0], [False, True, True, True, True])
     off = declarable(EstSettings(declare_rel=0.0, declare_trend=0), declared, est, sd, trend)
     np.testing.assert_array_equal(np.asarray(off[0]), [True] * 5)
+
+
+def test_declare_rel_next_refuses_a_loose_estimate_only_while_a_fault_is_declared():
+    """``declare_rel_next`` (session 27, off by default) is ``declare_rel`` for the later
+    declarations: with a fault declared a new one needs ``sd <= declare_rel_next * est``;
+    with nothing declared only ``declare_rel`` counts."""
+    # faults (valve wear, leakage) x runs: valve wear declared in runs 0-2; leakage tight
+    # (0.02 of 0.3), loose (0.03 of 0.3), loose but nothing declared (run 3)
+    declared = jnp.asarray([[True, True, True, False], [False, False, False, False]])
+    est = jnp.asarray([[0.5, 0.5, 0.5, 0.05], [0.3, 0.3, 0.37, 0.3]])
+    sd = jnp.asarray([[0.01, 0.01, 0.01, 0.5], [0.02, 0.03, 0.039, 0.03]])
+    s = EstSettings(declare_rel_next=0.08, declare_trend=0)
+    got = np.asarray(declarable(s, declared, est, sd)[1])
+    np.testing.assert_array_equal(got, [True, False, False, True])
+    off = np.asarray(declarable(s._replace(declare_rel_next=0.0), declared, est, sd)[1])
+    np.testing.assert_array_equal(off, [True, True, True, True])
+    assert EstSettings().declare_rel_next == 0.0  # off by default

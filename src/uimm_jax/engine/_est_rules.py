@@ -62,12 +62,18 @@ def declarable(s: EstSettings, declared, est, est_sd, trend=None) -> jax.Array:
     deviation ``est_sd`` at most ``declare_rel`` times it.  Early in a slow ramp the true
     fault is below its floor and restarts, and a look-alike (leakage for valve wear) wins
     with an estimate of relative sd 0.22-0.28 where the true fault's first declaration has
-    0.06-0.14, an abrupt one's 0.01-0.03 (docs/faults.md, "Session 11").
+    0.06-0.14, an abrupt one's 0.01-0.03 (docs/faults.md, "Session 11").  With
+    ``declare_rel_next`` the same holds while a fault is declared, at that fraction (off
+    by default; docs/faults.md, "Session 27").  With ``declare_trend`` the estimate
+    projected that many steps ahead at its recent fall ``trend`` (``EstState.trend``,
+    :mod:`uimm_jax.engine._est_drift`) must still be at least ``declare_min``.
     """
     big = est >= s.declare_min
+    later = jnp.any(declared, axis=0)
     if s.declare_rel > 0:
-        first = ~jnp.any(declared, axis=0)
-        big = big & (~first | (est_sd <= s.declare_rel * est))
+        big = big & (later | (est_sd <= s.declare_rel * est))
+    if s.declare_rel_next > 0:  # a later declaration on a tight estimate too
+        big = big & (~later | (est_sd <= s.declare_rel_next * est))
     if s.declare_trend and trend is not None:  # nor one falling towards nominal
         big = big & (est + s.declare_trend * jnp.minimum(trend, 0.0) >= s.declare_min)
     return big

@@ -256,6 +256,14 @@ class EstSettings(NamedTuple):
             later; see ``_est_rules.declarable``;
             docs/faults.md, "Session 27"; 0: off; 500, 50 ms at ``steps_dt``, the default
             since session 27).
+        declare_rel_next: while a fault is declared, another is declared only if its
+            estimate's standard deviation is at most this fraction of the estimate
+            (``declare_rel`` for the later declarations; 0: off, the default): a
+            look-alike that explains a declared fault's lag or a new fault's first samples
+            fits loosely (0.08 over seeds 0-4: false runs of the sizes and ramps cells 4
+            -> 1 of 9,600, but second faults declared 3-6 ms later when abrupt and up to
+            0.29 s later on ramps; see ``_est_rules.declarable``; docs/faults.md,
+            "Session 27").
     """
 
     walk: float = 1e-3
@@ -306,6 +314,7 @@ class EstSettings(NamedTuple):
     end_prior: float = 1e-6
     onset_restart: int = 20
     declare_trend: int = 500
+    declare_rel_next: float = 0.0
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -353,6 +362,7 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "end_prior": (0.0, False, "a probability per sample; 0: off"),
     "onset_restart": (0, False, "steps; 0: off"),
     "declare_trend": (0, False, "steps; 0: off"),
+    "declare_rel_next": (0.0, False, "a fraction of the estimate; 0: off"),
 }
 END_PRIOR_MAX = 0.01
 """The largest ``end_prior``: a row of the transition matrix keeps a positive diagonal
