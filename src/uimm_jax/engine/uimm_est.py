@@ -41,9 +41,9 @@ when another is (docs/faults.md, "Session 15"); ``floor_z`` restarts a hypothesi
 rests near its floor, unable to follow its fault, while the declared faults have settled
 (docs/faults.md, "Session 16"); ``restore_old`` and ``restore_steps`` (the defaults
 since session 19) act against a new fault's onset absorbed by a declared one, and
-``drift_walk`` (selectable, off) lets a walk follow a fast-growing estimate
-(docs/faults.md, "Ramps", "Session 19"), where a growth is led only with ``drift_lead``
-(on; "Session 22"); ``retract_pin`` (selectable, off) holds the
+``drift_walk`` (the default since session 28) lets a walk follow a fast-growing
+estimate (docs/faults.md, "Ramps", "Session 19", "Session 28"), where a growth is led
+only with ``drift_lead`` (on; "Session 22"); ``retract_pin`` (selectable, off) holds the
 other declared faults of a retraction hypothesis at model 0's estimates (docs/faults.md,
 "Ramps", "Session 20"), and ``retract_after`` (the default since session 21) holds the
 other declared faults' retraction hypotheses for 0.4 s after a declaration (docs/faults.md,

@@ -201,7 +201,8 @@ class EstSettings(NamedTuple):
             ``drift_steps`` steps (``EstState.drift``): an estimate that moves away from
             nominal at the rate of a fast ramp gets a walk that follows it, and its walk
             falls back once the fault stops growing (see ``_est_drift.drift_walk``;
-            docs/faults.md, "Ramps", "Session 19"; 0: off).
+            docs/faults.md, "Ramps", "Session 19"; 0: off; 3, the default since session
+            28: "Session 28").
         drift_steps: the steps of that average (an exponential one).
         restore_old: on a declaration, a fault that stays declared whose estimate lies
             more than this many of its sds nearer nominal than its level at its last
@@ -304,7 +305,7 @@ class EstSettings(NamedTuple):
     reopen_old: float = 0.01
     retract_rise: int = 1000
     floor_z: float = 2.0
-    drift_walk: float = 0.0
+    drift_walk: float = 3.0
     drift_steps: int = 20
     restore_old: float = 10.0
     restore_steps: int = 5000
