@@ -545,3 +545,55 @@ def test_declare_trend_is_each_estimates_clipped_average_move_after_its_wait():
     assert np.abs(trend).max() > 0
     off = np.asarray(run(dataclasses.replace(diag, settings=s._replace(declare_trend=0)))[0])
     assert np.all(off == 0.0)
+
+
+def test_decl_restart_restarts_the_resting_hypotheses_after_a_declaration():
+    """``decl_restart`` (session 28): while a declared fault's ``decl_age`` is below it,
+    every undeclared hypothesis that does not lead and has probability below
+    ``NEAR_FLOOR_MU`` restarts from the prior (its ``since`` to 1), wherever its estimate
+    is; long after the declaration, with nothing declared, for a hypothesis at or above
+    ``NEAR_FLOOR_MU``, for the leader and with ``decl_restart = 0`` estimates are kept.
+    ``decl_age`` counts to ``max(retract_after, decl_restart)`` and starts there."""
+    import functools
+
+    import jax
+    import jax.numpy as jnp
+
+    from uimm_jax.engine.imm import IMMState
+
+    diag = _diag()
+    n, F, M = diag.dyn.n, diag.num_faults, diag.num_models
+    s = diag.settings._replace(onset_restart=0)
+    # runs: valve wear declared 5 steps ago; 1000 steps ago; 5 ago with leakage's
+    # hypothesis at 0.25; nothing declared; 5 ago with leakage's hypothesis leading
+    R = 5
+    declared = jnp.asarray([[True, True, True, False, True], [False] * R, [False] * R])
+    age = jnp.asarray([[5, 1000, 5, 5, 5], [4000] * R, [4000] * R], jnp.int32)
+    mean = np.zeros((n + F, M, R))
+    mean[n] = 1.0  # valve wear, every model
+    mean[n + 1, 2] = 0.5  # leakage's own hypothesis: far from its floor (sd 0.1)
+    mean[n + 2, 3] = 1.2  # air in oil's
+    var = np.r_[np.full(n, 1e-4), 1e-4, 0.01, 0.04]
+    cov = np.broadcast_to(np.diag(var)[..., None, None], (n + F, n + F, M, R)).copy()
+    mu = np.array([[0.8] * R, [0.05] * R, [0.1] * R, [0.05] * R])
+    mu[:, 2] = [0.6, 0.05, 0.3, 0.05]
+    mu[:, 4] = [0.3, 0.05, 0.6, 0.05]
+    state = IMMState(jnp.asarray(mean), jnp.asarray(cov), jnp.log(jnp.asarray(mu)))
+    use = diag.model_sets(declared)
+    since = jnp.full((F, R), 1000, jnp.int32)
+    for window in (200, 0):
+        reset = jax.jit(functools.partial(rules.reset_unused, s._replace(decl_restart=window), n))
+        got, new_since = reset(state, use, declared, since, None, None, age)
+        again = np.isclose(np.asarray(got.mean[n + 1, 2]), s.prior_mean)
+        np.testing.assert_array_equal(np.asarray(new_since[1]) == 1, again)
+        assert again.tolist() == [window > 0, False, False, False, False], (window, again)
+        np.testing.assert_allclose(np.asarray(got.mean[n + 1, 2])[~again], 0.5)
+    # the age: from the cap, 0 at a declaration, one more each step up to the cap
+    for after, restart in ((0, 200), (4000, 200), (100, 300)):
+        s1 = s._replace(retract_after=after, decl_restart=restart)
+        cap = max(after, restart)
+        assert rules.age_cap(s1) == cap
+        fresh = jnp.asarray([[True, False, False]])
+        a = jnp.full((1, 3), cap, jnp.int32).at[0, 1].set(cap - 1).at[0, 2].set(7)
+        got = np.asarray(rules.declaration_age(s1, a, fresh))
+        np.testing.assert_array_equal(got, [[0, cap, 8]])

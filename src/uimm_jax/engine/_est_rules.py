@@ -298,9 +298,14 @@ def after_declaration(s: EstSettings, declared, decl_age) -> jax.Array:
     return declared & (others > 0)
 
 
+def age_cap(s: EstSettings) -> int:
+    """Where ``EstState.decl_age`` starts and stops (``retract_after``, ``decl_restart``)."""
+    return max(s.retract_after, s.decl_restart)
+
+
 def declaration_age(s: EstSettings, decl_age, fresh_decl) -> jax.Array:
-    """``retract_after``: each fault's steps since its last declaration, capped."""
-    aged = jnp.minimum(decl_age + 1, s.retract_after)
+    """``retract_after``, ``decl_restart``: each fault's steps since its declaration, capped."""
+    aged = jnp.minimum(decl_age + 1, age_cap(s))
     return jnp.where(fresh_decl, 0, aged).astype(jnp.int32)
 
 
@@ -328,7 +333,9 @@ NEAR_FLOOR_MU, ONSET_CALM, CALM_CAP = 0.2, 0.9, 1 << 20
 ``onset_restart``: model 0's clear lead, and the cap of ``EstState.calm``."""
 
 
-def reset_unused(s: EstSettings, n: int, st: IMMState, use, declared, since, keep=None, calm=None):
+def reset_unused(
+    s: EstSettings, n: int, st: IMMState, use, declared, since, keep=None, calm=None, age=None
+):
     """Magnitudes a model does not use: to the bank's belief about them, uncorrelated.
 
     For a declared fault that is model 0's current estimate (so that mixing with the
@@ -368,6 +375,10 @@ def reset_unused(s: EstSettings, n: int, st: IMMState, use, declared, since, kee
     growing from its floor) is left alone, and so is every hypothesis while a declared fault
     still grows: a look-alike kept fresh then explains that fault's lag (measured on sim
     1's 10 s ramps at 0.3); ``onset_restart``: "Session 26", ``calm`` its counter.
+    With ``decl_restart``, while a declared fault's ``age`` (``EstState.decl_age``, steps
+    since its declaration) is below it, every undeclared hypothesis that does not lead
+    and has probability below :data:`NEAR_FLOOR_MU` restarts: its estimate was fitted
+    without the new fault ("Session 28").
     Returns the state and the new ``since``.
     """
     F = declared.shape[0]
@@ -407,6 +418,9 @@ def reset_unused(s: EstSettings, n: int, st: IMMState, use, declared, since, kee
     if s.onset_restart and calm is not None:  # model 0 has just lost a clear lead
         onset = (lead != 0) & (calm <= s.onset_restart) & any_decl & (since > s.onset_restart)
         held = held | (onset & ~lead_f & (st.log_mode_probs[1:] < np.log(NEAR_FLOOR_MU)))
+    if s.decl_restart and age is not None:  # a fault was declared within decl_restart
+        recent = jnp.any(declared & (age < s.decl_restart), axis=0)
+        held = held | (recent & ~lead_f & (st.log_mode_probs[1:] < np.log(NEAR_FLOOR_MU)))
     live = ~low & ~held  # (F, *runs)
     restart = ~declared & ~live
     since = jnp.where(restart, 1, jnp.minimum(since + 1, gap_cap(s)))

@@ -205,7 +205,7 @@ class UIMMEstDiagnoser(Diagnoser):
             jnp.zeros((F,) + tuple(runs), dtype),
             jnp.zeros((F,) + tuple(runs), dtype),
             jnp.zeros((F,) + tuple(runs), jnp.int32),
-            jnp.full((F,) + tuple(runs), s.retract_after, jnp.int32),
+            jnp.full((F,) + tuple(runs), rules.age_cap(s), jnp.int32),
             jnp.full(tuple(runs), rules.CALM_CAP, jnp.int32),
             jnp.zeros((F,) + tuple(runs), dtype),
         )
@@ -233,7 +233,9 @@ class UIMMEstDiagnoser(Diagnoser):
         if s.onset_restart:  # the steps since model 0's last clear lead
             clear = state.imm.log_mode_probs[0] >= np.log(rules.ONSET_CALM)
             calm = jnp.where(clear, 0, jnp.minimum(calm + 1, rules.CALM_CAP)).astype(jnp.int32)
-        imm0, since = rules.reset_unused(s, n, state.imm, use, declared, state.since, keep, calm)
+        imm0, since = rules.reset_unused(
+            s, n, state.imm, use, declared, state.since, keep, calm, state.decl_age
+        )
         if s.walk_rel:  # a declared fault's walk grows with its size
             imm0 = rules.walk_rel(s, n, imm0, declared, since)
         drift = state.drift
@@ -340,7 +342,7 @@ class UIMMEstDiagnoser(Diagnoser):
             )
             left = rules.level_left(s, est, est_sd, level, level_sd, left)
         decl_age = state.decl_age
-        if s.retract_after:
+        if s.retract_after or s.decl_restart:
             decl_age = rules.declaration_age(s, decl_age, fresh_decl)
         if s.walk_settled:  # since: a declared fault's age; a retracted one is due again
             since = jnp.where(new_declared & ~declared, 0, since)

@@ -46,7 +46,8 @@ class EstState(NamedTuple):
             ``level_sd`` its sd then, ``left`` (int32) the steps since the estimate was
             last near it (``_est_rules.level_left``; ``restore_old``; zeros while off).
         decl_age: ``(F, *runs)`` int32, steps since each fault's last declaration, up to
-            ``retract_after`` (where it starts; ``_est_rules.declaration_age``).
+            ``_est_rules.age_cap`` (``retract_after``'s and ``decl_restart``'s windows;
+            where it starts; ``_est_rules.declaration_age``).
         calm: ``(*runs,)`` int32, steps since model 0's probability was last at least
             ``ONSET_CALM`` at a step's start, up to ``CALM_CAP`` (``onset_restart``; the
             cap at the start).

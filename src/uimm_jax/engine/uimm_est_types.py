@@ -265,6 +265,14 @@ class EstSettings(NamedTuple):
             -> 1 of 9,600, but second faults declared 3-6 ms later when abrupt and up to
             0.29 s later on ramps; see ``_est_rules.declarable``; docs/faults.md,
             "Session 27").
+        decl_restart: steps: within this many steps of a declaration, every undeclared
+            hypothesis that does not lead and has probability below ``NEAR_FLOOR_MU``
+            restarts from the prior at every step: its estimate was fitted without the
+            new fault and can explain that fault's lag as a look-alike (1 s ramps at 3,
+            seed 1, run 29: leakage's hypothesis, the runner-up of valve wear's race,
+            kept 0.1-3 % of the probability under ``drift_walk`` and was declared 55 ms
+            after valve wear; see ``_est_rules.reset_unused``; docs/faults.md, "Session
+            28"; 0: off).
     """
 
     walk: float = 1e-3
@@ -316,6 +324,7 @@ class EstSettings(NamedTuple):
     onset_restart: int = 20
     declare_trend: int = 500
     declare_rel_next: float = 0.0
+    decl_restart: int = 0
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
@@ -364,6 +373,7 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "onset_restart": (0, False, "steps; 0: off"),
     "declare_trend": (0, False, "steps; 0: off"),
     "declare_rel_next": (0.0, False, "a fraction of the estimate; 0: off"),
+    "decl_restart": (0, False, "steps; 0: off"),
 }
 END_PRIOR_MAX = 0.01
 """The largest ``end_prior``: a row of the transition matrix keeps a positive diagonal
@@ -501,7 +511,7 @@ def est_value_from_text(name: str, text: str) -> Any:
 COUNTED_SETTINGS = ("restart_gap", "floor_gap", "post_gap", "settle_steps", "post_floor_gap")
 COUNTED_SETTINGS += ("retract_hold", "low_floor_age", "retract_young", "settle_creep")
 COUNTED_SETTINGS += ("retract_rise", "drift_steps", "restore_steps", "retract_after")
-COUNTED_SETTINGS += ("onset_restart", "declare_trend")
+COUNTED_SETTINGS += ("onset_restart", "declare_trend", "decl_restart")
 """The settings counted in steps, which :func:`settings_at_dt` converts."""
 
 
