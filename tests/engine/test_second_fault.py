@@ -565,7 +565,7 @@ def test_decl_restart_restarts_the_resting_hypotheses_after_a_declaration():
     n, F, M = diag.dyn.n, diag.num_faults, diag.num_models
     s = diag.settings._replace(onset_restart=0)
     # runs: valve wear declared 5 steps ago; 1000 steps ago; 5 ago with leakage's
-    # hypothesis at 0.25; nothing declared; 5 ago with leakage's hypothesis leading
+    # hypothesis at 0.3; nothing declared; 5 ago with leakage's hypothesis leading
     R = 5
     declared = jnp.asarray([[True, True, True, False, True], [False] * R, [False] * R])
     age = jnp.asarray([[5, 1000, 5, 5, 5], [4000] * R, [4000] * R], jnp.int32)

@@ -415,12 +415,12 @@ def reset_unused(
         held = held & ~(race & ~any_decl if s.race_floor_first else race)
     if keep is not None:
         held = held & ~keep
+    resting = ~lead_f & (st.log_mode_probs[1:] < np.log(NEAR_FLOOR_MU))  # the restarts below
     if s.onset_restart and calm is not None:  # model 0 has just lost a clear lead
         onset = (lead != 0) & (calm <= s.onset_restart) & any_decl & (since > s.onset_restart)
-        held = held | (onset & ~lead_f & (st.log_mode_probs[1:] < np.log(NEAR_FLOOR_MU)))
+        held = held | (onset & resting)
     if s.decl_restart and age is not None:  # a fault was declared within decl_restart
-        recent = jnp.any(declared & (age < s.decl_restart), axis=0)
-        held = held | (recent & ~lead_f & (st.log_mode_probs[1:] < np.log(NEAR_FLOOR_MU)))
+        held = held | (jnp.any(declared & (age < s.decl_restart), axis=0) & resting)
     live = ~low & ~held  # (F, *runs)
     restart = ~declared & ~live
     since = jnp.where(restart, 1, jnp.minimum(since + 1, gap_cap(s)))
