@@ -134,7 +134,7 @@ def test_after_declaration_holds_every_declared_fault_but_the_newly_declared_alo
 def test_declaration_age_restarts_at_a_declaration_and_stops_at_retract_after():
     import jax.numpy as jnp
 
-    s = EstSettings(retract_after=3)
+    s = EstSettings(retract_after=3, decl_restart=0)  # the age counts to the larger of the two
     fresh = np.array([[True, False, False, False, False, True, False]])
     age = np.full((1, 1), 3, np.int32)
     seen, want, a = [], [], 3

@@ -198,6 +198,7 @@ def test_tuning_says_to_drop_the_table_from_its_fixed_size_copy():
 COUNTED = ("restart_gap", "floor_gap", "post_gap", "settle_steps", "post_floor_gap")
 COUNTED += ("retract_hold", "low_floor_age", "retract_young", "settle_creep", "retract_rise")
 COUNTED += ("drift_steps", "restore_steps", "retract_after", "onset_restart", "declare_trend")
+COUNTED += ("decl_restart",)
 
 
 def test_counted_settings_keep_their_meaning_in_seconds_at_another_dt():
@@ -213,6 +214,7 @@ def test_counted_settings_keep_their_meaning_in_seconds_at_another_dt():
     assert slow.drift_steps == 2  # 2 ms either way
     assert slow.onset_restart == 2  # 2 ms either way
     assert slow.declare_trend == 50  # 50 ms either way
+    assert slow.decl_restart == 20  # 20 ms either way
     assert slow.end_prior == pytest.approx(10 * s.end_prior, rel=1e-12)  # the same rate
     back = {k: getattr(s, k) for k in (*COUNTED, "end_prior")}
     assert slow._replace(**back, steps_dt=1e-4) == s  # no other

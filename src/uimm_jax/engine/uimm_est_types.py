@@ -272,7 +272,8 @@ class EstSettings(NamedTuple):
             seed 1, run 29: leakage's hypothesis, the runner-up of valve wear's race,
             kept 0.1-3 % of the probability under ``drift_walk`` and was declared 55 ms
             after valve wear; see ``_est_rules.reset_unused``; docs/faults.md, "Session
-            28"; 0: off).
+            28", "Session 29"; 0: off; 200, 20 ms at ``steps_dt``, the default since
+            session 29).
     """
 
     walk: float = 1e-3
@@ -324,7 +325,7 @@ class EstSettings(NamedTuple):
     onset_restart: int = 20
     declare_trend: int = 500
     declare_rel_next: float = 0.0
-    decl_restart: int = 0
+    decl_restart: int = 200
 
 
 # -- validation: the one place that says what a setting may be ---------------------------
