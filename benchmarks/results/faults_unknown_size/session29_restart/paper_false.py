@@ -10,9 +10,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'session11_ramp2'))
 import ramp_false as rf
-import jax, jax.numpy as jnp, numpy as np
-from uimm_jax.engine.truth import run_keys
-from uimm_jax.studies import run as srun
+import importlib.util
+import numpy as np
 from uimm_jax.studies.sweep import run_sweep
 from uimm_jax.scenario.parse import load_scenario, parse_scenario
 from uimm_jax.scenario.write import scenario_to_dict
@@ -35,32 +34,8 @@ if len(sys.argv) < 4:
         for r in np.nonzero(fd.any(-1))[0]:
             print('run', r, 'false', [res.faults[f] for f in np.nonzero(fd[r])[0]], 'decl', res.decl_step[c, r].tolist(), 'onset', res.onset_step[c, r].tolist(), 'retract', np.asarray(res.estimates['retract_step'][c, r]).tolist())
     sys.exit()
-r = int(sys.argv[3])
-setup = srun.setup_scenario(sc, "uimm-est")
-key = jnp.asarray(run_keys(seed, 64)[0][r])
-rec = {}
-def diagnose(setup, y, u=None, **kw):
-    dg = setup.diagnoser; n = dg.dyn.n
-    us = jnp.asarray(srun.scenario_inputs(setup.scenario, y.shape[0]) if u is None else u)
-    def body(st, uy):
-        st2, info = dg.step(st, setup.params, uy[0], uy[1], with_cov=False)
-        var = jnp.diagonal(st2.imm.cov[n:, n:], axis1=0, axis2=1)
-        return st2, (st2.imm.log_mode_probs, st2.imm.mean[n:], var, st2.since, info.declared)
-    f = jax.jit(lambda s0, xs: jax.lax.scan(body, s0, xs))
-    _, o = f(setup.init_state, (us, jnp.asarray(y)))
-    rec.update(zip(("lmp", "mag", "var", "since", "dec"), map(np.asarray, o)))
-    return srun.filter_measurements(setup, y, u, **kw)
-orig = jax.random.PRNGKey
-jax.random.PRNGKey = lambda s: key
-try:
-    o = srun.execute_run(setup, diagnose)
-finally:
-    jax.random.PRNGKey = orig
-k0, k1, st = (int(os.environ.get(k, v)) for k, v in (("K0", 10000), ("K1", 11000), ("STEP", 20)))
-np.set_printoptions(linewidth=250, precision=3, suppress=True)
-F = rec['mag'].shape[1]
-for k in range(k0, k1, st):
-    mp = np.exp(rec['lmp'][k])
-    own = [f"{rec['mag'][k, j, j+1].item():.3f}±{np.sqrt(rec['var'][k, j+1, j].item()):.3f}" for j in range(F)]
-    print(k, np.round(mp.ravel(), 4), rec['dec'][k], 'own:', own, 'm0:', np.round(rec['mag'][k, :, 0].ravel(), 3), 'since', rec['since'][k].ravel())
-print({k: o.summary[k] for k in ("declarations", "retractions")})
+spec = importlib.util.spec_from_file_location(  # the tracer of session26_onset/trace.py
+    "onset_trace", Path(__file__).resolve().parents[1] / "session26_onset" / "trace.py")
+tr = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(tr)
+tr.trace(sc, seed, int(sys.argv[3]), *tr.window(10000, 11000, 20))
