@@ -12,6 +12,8 @@ uses a fresh temporary directory, removed at exit, so nothing carries over betwe
 the environment variables reach the subprocesses the tests start.  A cache hit loads the
 executable XLA compiled for the same key, so results do not change.  Measured in
 README.md ("Quick start", after the test command).  ``UIMM_JAX_TEST_NO_CACHE=1`` turns it off.
+Under ``pytest -n 2`` (the README's command) each worker process has its own cache: one
+cache shared by the two workers was measured no faster (4 min 39 s against 4 min 41 s).
 """
 
 import atexit

@@ -143,7 +143,7 @@ BLOCKS = (
           creates=("out/sim1/summary.json", "out/sim1/timeseries.npz",
                    "out/sim1/mode_probabilities.png", "out/sim1/states.png",
                    "out/sim1/innovation.png")),
-    Entry("README.md", "pip install -e '.[test]' && pytest -q", "skip",
+    Entry("README.md", "pip install -e '.[test]' && pytest -q -n 2", "skip",
           reason="the suite itself (CI runs this line verbatim, .ci/run)"),
     Entry("README.md", "# 1. A scenario file, end to end.", "run"),
     Entry("README.md", "register_plant(LinearPlant(", "run"),
