@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import pytest
 
@@ -621,11 +619,6 @@ def test_gathered_cache_rebuild_equals_the_whole_batch_rebuild():
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(
-    not os.environ.get("UIMM_JAX_SLOW_TESTS"),
-    reason="set UIMM_JAX_SLOW_TESTS=1 (22 s: two compiles of a 40-run step; the gathering "
-    "itself is checked by test_gathered_cache_rebuild_equals_the_whole_batch_rebuild)",
-)
 def test_uimm_est_batch_steps_are_the_same_with_and_without_gathering(monkeypatch):
     # The whole step over a batch of 40 runs, with the gathered rebuilds (groups of 8 and
     # 32, the whole batch above) and with the whole-batch rebuild only: bit for bit.

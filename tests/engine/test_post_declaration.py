@@ -7,7 +7,6 @@ each test states the settings it compares, from session 10's (``SESSION10_EST``)
 from __future__ import annotations
 
 import dataclasses
-import os
 
 import numpy as np
 import pytest
@@ -84,10 +83,6 @@ def test_retract_hold_delays_a_retraction_by_at_least_its_samples():
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(
-    not os.environ.get("UIMM_JAX_SLOW_TESTS"),
-    reason="set UIMM_JAX_SLOW_TESTS=1 (11 s: two compiles of the diagnoser)",
-)
 def test_explicit_post_settings_equal_to_the_defaults_change_nothing():
     """The new rules reduce to the shipped ones at their neutral values, bit for bit."""
     from uimm_jax.engine.uimm_est import EstSettings

@@ -53,10 +53,6 @@ def test_import_adds_the_cpu_flags_only_for_the_cpu(platforms, applied):
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(
-    not os.environ.get("UIMM_JAX_SLOW_TESTS"),
-    reason="set UIMM_JAX_SLOW_TESTS=1 (17 s: the GPU script in dry-run mode)",
-)
 def test_gpu_check_dry_run_works_on_the_cpu():
     res = subprocess.run(
         ["bash", str(ROOT / "benchmarks" / "gpu_check.sh"), "--dry-run"],

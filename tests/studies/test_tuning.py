@@ -3,15 +3,14 @@
 The finite-difference and optax tests share one small problem, compiled once for the
 module (``make_loss_fn`` caches the loss and its gradient per ``(problem, config)``): a
 scalar discrete-time plant with two faults (the compiled gradient of the 3-state actuator
-takes minutes on a loaded CPU; its finite-difference check is the opt-in
-``test_gradient_matches_central_differences_actuator``, run with
-``UIMM_JAX_SLOW_TESTS=1``).  300 samples, a run with both faults declared and a
+was once said to take minutes; its finite-difference check,
+``test_gradient_matches_central_differences_actuator``, took 8.5 s in session 30 and runs
+in the default suite since).  300 samples, a run with both faults declared and a
 fault-free run, precomputed truth, one scan segment.
 """
 
 import dataclasses
 import json
-import os
 import subprocess
 import sys
 import warnings
@@ -243,9 +242,6 @@ def test_decoupled_gradient_differs_from_coupled(small):
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(
-    not os.environ.get("UIMM_JAX_SLOW_TESTS"), reason="set UIMM_JAX_SLOW_TESTS=1 (minutes)"
-)
 def test_gradient_matches_central_differences_actuator():
     sc = tune.rescale_scenario(paper_sim1(), STEPS * 1e-4)
     config = tune.TuneConfig(tune_noise=True, segment=STEPS, checkpoint=False)
@@ -346,10 +342,6 @@ def test_cli_tune_registered_and_refuses_training_seed_as_eval_seed(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(
-    not os.environ.get("UIMM_JAX_SLOW_TESTS"),
-    reason="set UIMM_JAX_SLOW_TESTS=1 (15 s: a tune CLI process)",
-)
 def test_cli_tune_eval_only_evaluates_an_existing_file(tmp_path):
     """``--eval-only`` skips training, keeps the file and records a before/after table."""
     exe = [sys.executable, "-m", "uimm_jax", "tune", str(ROOT / "scenarios" / "paper_sim1.toml")]
