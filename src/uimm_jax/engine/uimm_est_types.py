@@ -45,8 +45,8 @@ class EstSettings(NamedTuple):
     ``retract_keep`` (session 12), ``settle_low`` (13), ``retract_young`` (14),
     ``reopen_old=0.01``, ``settle_creep=30000``, ``retract_rise=1000`` (15), ``floor_z=2``
     (16), ``retract_below=0.05`` (18), ``restore_old=10``, ``restore_steps=5000`` (19) and
-    ``retract_after=4000`` (21); and ``end_prior=1e-6`` (25), ``onset_restart=20`` (26)
-    and ``declare_trend=500`` (27),
+    ``retract_after=4000`` (21); and ``end_prior=1e-6`` (25), ``onset_restart=20`` (26),
+    ``declare_trend=500`` (27), ``drift_walk=3`` (28) and ``decl_restart=200`` (29),
     chosen on the acceptance cells pooled over seeds 0-4 (320 runs a cell) rather than
     at seed 0 alone.  Each one's figures (false runs,
     coverage, delays, per cell and against the defaults before it) are in docs/faults.md,
