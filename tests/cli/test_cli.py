@@ -234,7 +234,7 @@ def test_run_prints_sizes_and_retractions_of_uimm_est(tmp_path, capsys, monkeypa
     assert summary["est_settings"] == json.loads(json.dumps(est._asdict()))
     for dec in summary["declarations"]:
         lo, hi = dec["magnitude_ci"]
-        want = f"magnitude {dec['magnitude']:.3g} [{lo:.3g}, {hi:.3g}]"
+        want = f"magnitude {dec['magnitude']:.4g} [{lo:.4g}, {hi:.4g}]"
         assert re.search(rf"declared {dec['fault']}\s+at .*{re.escape(want)}", text), text
     retracted = re.findall(r"retracted (\w+)\s+at\s+([\d.]+) s  \[(ok|FALSE)\]", text)
     assert [(f, float(t), tag) for f, t, tag in retracted] == [

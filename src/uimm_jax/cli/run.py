@@ -165,7 +165,7 @@ def _print_summary(s: dict) -> None:
         size = ""
         if d.get("magnitude") is not None:  # uimm-est: the size at the end, 95 % interval
             lo, hi = d["magnitude_ci"]
-            size = f"  magnitude {d['magnitude']:.3g} [{lo:.3g}, {hi:.3g}]"
+            size = f"  magnitude {d['magnitude']:.4g} [{lo:.4g}, {hi:.4g}]"
         print(f"  declared {d['fault']:<20s} at {d['time']:8.4f} s  [{tag}]{size}")
     for r in s.get("retractions", []):
         tag = "ok" if r["correct"] else "FALSE"

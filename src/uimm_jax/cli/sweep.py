@@ -53,8 +53,8 @@ def register(subparsers) -> None:
     s = subparsers.add_parser(
         "sweep",
         help="Monte Carlo study: detection/isolation metrics over seeds, magnitudes, methods",
-        description="Monte Carlo study of a scenario: writes results.json, results.csv and "
-        "figures (docs/montecarlo.md).",
+        description="Monte Carlo study of a scenario: writes results.json, results.csv, "
+        "runs.csv, runs.npz and figures (docs/montecarlo.md).",
     )
     s.add_argument("scenario", help="scenario TOML file, optionally with a [sweep] table")
     s.add_argument("--runs", type=int, help="runs per cell (overrides [sweep].runs)")
