@@ -59,3 +59,67 @@ def test_declare_rel_next_refuses_a_loose_estimate_only_while_a_fault_is_declare
     off = np.asarray(declarable(s._replace(declare_rel_next=0.0), declared, est, sd)[1])
     np.testing.assert_array_equal(off, [True, True, True, True])
     assert EstSettings().declare_rel_next == 0.0  # off by default
+
+
+def test_onset_widen_frees_awake_hypotheses_fitted_to_noise_at_the_first_onset():
+    """``onset_widen`` (session 31): in ``onset_restart``'s window while nothing is
+    declared (model 0 does not lead, within ``onset_restart`` steps of its last clear
+    lead), every undeclared hypothesis above ``restart_below`` that has not restarted
+    within the window and does not lead keeps its estimate and gets a variance of at least
+    ``prior_sd**2`` (its ``since`` to 1); the leader too while its estimate is within
+    ``onset_widen`` sds of nominal (fitted to noise, not to the onset). One below
+    ``restart_below`` restarts from the prior as always; nothing changes after a
+    declaration, long after the lead, for a hypothesis restarted within the window, or
+    with ``onset_widen`` 0."""
+    import functools
+
+    import jax
+
+    from _robustness_helpers import short_dict
+    from uimm_jax.engine import _est_rules as rules
+    from uimm_jax.engine.imm import IMMState
+    from uimm_jax.scenario.parse import parse_scenario
+    from uimm_jax.studies.run import setup_scenario
+
+    d = short_dict(2, duration=0.3)
+    d["filter"].pop("initial_mode_probs")
+    d["events"] = [{"time": 0.2, "fault": "valve_wear"}]
+    diag = setup_scenario(parse_scenario(d), "uimm-est").diagnoser
+    n, F, M = diag.dyn.n, diag.num_faults, diag.num_models
+    s = diag.settings._replace(onset_widen=6.0)
+    # runs: 0 nothing declared, leakage's hypothesis (model 2) leads 5 steps after model
+    # 0's clear lead, 1.4 +- 0.4 (3.5 sds: within onset_widen); 1 the same 100 steps
+    # after; 2 valve wear declared; 3 as 0 with valve wear's hypothesis restarted 10
+    # steps ago; 4 as 0 with the leader at 1.4 +- 0.1 (14 sds: it fits the onset)
+    R = 5
+    declared = jnp.asarray([[False, False, True, False, False], [False] * R, [False] * R])
+    calm = jnp.asarray([5, 100, 5, 5, 5], jnp.int32)
+    mean = np.zeros((n + F, M, R))
+    mean[n, 1] = 0.14  # valve wear's own hypothesis: awake, small, narrow
+    mean[n + 1, 2] = 1.4  # leakage's, leading
+    mean[n, :, 2] = 1.0  # run 2: valve wear declared, every model
+    var = np.r_[np.full(n, 1e-4), 0.14**2, 0.4**2, 1.0]
+    cov = np.broadcast_to(np.diag(var)[..., None, None], (n + F, n + F, M, R)).copy()
+    cov[n + 1, n + 1, :, 4] = 0.1**2
+    mu = np.array([[0.3] * R, [0.05] * R, [0.65] * R, [1e-5] * R])  # air in oil: below
+    state = IMMState(jnp.asarray(mean), jnp.asarray(cov), jnp.log(jnp.asarray(mu)))
+    use = diag.model_sets(declared)
+    since = jnp.full((F, R), 1000, jnp.int32).at[0, 3].set(10)
+    for z in (6.0, 0.0):
+        on = z > 0
+        reset = jax.jit(functools.partial(rules.reset_unused, s._replace(onset_widen=z), n))
+        got, new_since = reset(state, use, declared, since, None, calm)
+        gm, gv = np.asarray(got.mean), np.asarray(got.cov)
+        # valve wear's hypothesis (runs 0 and 4; not run 3, restarted within the window)
+        np.testing.assert_allclose(gm[n, 1, [0, 1, 3, 4]], 0.14)
+        wide = [on, False, False, on]
+        want = np.where(wide, s.prior_sd**2, 0.14**2)
+        np.testing.assert_allclose(gv[n, n, 1, [0, 1, 3, 4]], want)
+        np.testing.assert_array_equal(np.asarray(new_since[0, [0, 1, 3, 4]]) == 1, wide)
+        # the leader, its estimate kept: widened in runs 0 and 3, not after a declaration
+        # nor in run 4, where it lies 14 sds from nominal
+        np.testing.assert_allclose(gm[n + 1, 2], 1.4)
+        want = np.where([on, False, False, on, False], s.prior_sd**2, [0.4**2] * 4 + [0.1**2])
+        np.testing.assert_allclose(gv[n + 1, n + 1, 2], want)
+        # air in oil, below restart_below: from the prior in every run, as always
+        np.testing.assert_allclose(gm[n + 2, 3], s.prior_mean)

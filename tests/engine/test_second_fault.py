@@ -393,7 +393,9 @@ def test_onset_restart_restarts_the_resting_hypotheses_when_model_0_loses_a_clea
     estimate is; the leader, a hypothesis at or above ``NEAR_FLOOR_MU``, one restarted
     within the window, every hypothesis while nothing is declared, while model 0 leads or
     long after its clear lead, and every one with ``onset_restart = 0``, keep their
-    estimates.  ``step`` counts ``calm`` from the carried mode probabilities."""
+    estimates (``onset_widen``, off here, acts while nothing is declared: tested in
+    test_first_declaration.py).  ``step`` counts ``calm`` from the carried mode
+    probabilities."""
     import functools
 
     import jax
@@ -425,7 +427,7 @@ def test_onset_restart_restarts_the_resting_hypotheses_when_model_0_loses_a_clea
     use = diag.model_sets(declared)
     since = jnp.full((F, R), 1000, jnp.int32).at[1, 5].set(10)
     for window in (20, 0):
-        s1 = s._replace(onset_restart=window)
+        s1 = s._replace(onset_restart=window, onset_widen=0.0)  # run 3: onset_widen's
         reset = jax.jit(functools.partial(rules.reset_unused, s1, n))
         got, new_since = reset(state, use, declared, since, None, calm)
         again = np.isclose(np.asarray(got.mean[n + 1, 2]), s.prior_mean)

@@ -379,6 +379,13 @@ def reset_unused(
     since its declaration) is below it, every undeclared hypothesis that does not lead
     and has probability below :data:`NEAR_FLOOR_MU` restarts: its estimate was fitted
     without the new fault ("Session 28").
+    With ``onset_widen``, in ``onset_restart``'s window while nothing is declared, every
+    undeclared hypothesis above ``restart_below`` that does not lead and has not restarted
+    within the window keeps its estimate with its variance raised to at least
+    ``prior_sd**2`` (its correlations cleared, as a restart's), and so does the leader
+    while its estimate lies within ``onset_widen`` sds of nominal: a hypothesis awake at a
+    small estimate fitted to noise meets the first fault as freely as a look-alike at the
+    prior, while a leader that fits the onset keeps its head start ("Session 31").
     Returns the state and the new ``since``.
     """
     F = declared.shape[0]
@@ -421,12 +428,19 @@ def reset_unused(
         held = held | (onset & resting)
     if s.decl_restart and age is not None:  # a fault was declared within decl_restart
         held = held | (jnp.any(declared & (age < s.decl_restart), axis=0) & resting)
+    widen = False
+    if s.onset_widen and s.onset_restart and calm is not None:  # the first fault's onset
+        first = (lead != 0) & (calm <= s.onset_restart) & ~any_decl
+        noise = own_mean < s.onset_widen * jnp.sqrt(jnp.maximum(own_var, 0.0))
+        widen = first & ~declared & ~low & (since > s.onset_restart) & (noise | ~lead_f)
+        held = held | widen
     live = ~low & ~held  # (F, *runs)
     restart = ~declared & ~live
     since = jnp.where(restart, 1, jnp.minimum(since + 1, gap_cap(s)))
     use = use & ~(own & restart[:, None])
-    tm = jnp.where(declared, st.mean[n:, 0], jnp.where(live, own_mean, s.prior_mean))
-    tv = jnp.where(declared, var_all[:, 0], jnp.where(live, own_var, s.prior_sd**2))
+    tm = jnp.where(declared, st.mean[n:, 0], jnp.where(live | widen, own_mean, s.prior_mean))
+    wide = jnp.where(widen, jnp.maximum(own_var, s.prior_sd**2), s.prior_sd**2)
+    tv = jnp.where(declared, var_all[:, 0], jnp.where(live, own_var, wide))
     tm, tv = tm[:, None], tv[:, None]  # (F, 1, *runs)
     free = jnp.concatenate([jnp.ones((n,) + use.shape[1:], bool), use], axis=0)
     mean = jnp.concatenate([st.mean[:n], jnp.where(use, st.mean[n:], tm)], 0)
