@@ -47,8 +47,8 @@ class EstSettings(NamedTuple):
     (16), ``retract_below=0.05`` (18), ``restore_old=10``, ``restore_steps=5000`` (19) and
     ``retract_after=4000`` (21); and ``end_prior=1e-6`` (25), ``onset_restart=20`` (26),
     ``declare_trend=500`` (27), ``drift_walk=3`` (28), ``decl_restart=200`` (29) and
-    ``onset_widen=6`` (31), chosen on the acceptance cells pooled over seeds 0-4 (320 runs a cell) rather than
-    at seed 0 alone.  Each one's figures (false runs,
+    ``onset_widen=6`` (31), chosen on the acceptance cells pooled over seeds 0-4 (320
+    runs a cell) rather than at seed 0 alone.  Each one's figures (false runs,
     coverage, delays, per cell and against the defaults before it) are in docs/faults.md,
     "Session by session".
     **Settings counted in steps** (the gaps, ``settle_steps``, ``retract_hold``,
