@@ -393,6 +393,7 @@ def reset_unused(
     own = own_slots(F, use.ndim - 2)
     own_mean = jnp.sum(jnp.where(own, st.mean[n:], 0.0), axis=1)  # (F, *runs)
     own_var = jnp.sum(jnp.where(own, var_all, 0.0), axis=1)
+    own_sd = jnp.sqrt(jnp.maximum(own_var, 0.0))
     any_decl = jnp.any(declared, axis=0)
     due = since >= s.restart_gap
     if s.post_gap > 0:
@@ -414,7 +415,7 @@ def reset_unused(
         resting = any_decl & (st.log_mode_probs[1:] < np.log(NEAR_FLOOR_MU))
         if growth_ages(s):  # and every declared fault has settled (``since``: its age)
             resting = resting & jnp.all(~declared | (since >= s.settle_steps), axis=0)
-        near = s.floor_z * jnp.sqrt(jnp.maximum(own_var, 0.0))
+        near = s.floor_z * own_sd
         at_floor = at_floor + jnp.where(resting, near, 0.0)
     held = (own_mean <= at_floor) & (since >= floor_gap)  # at floor
     if s.race_floor > 0:  # nor at the floor, in a race (docs/faults.md, "Ramps")
@@ -431,7 +432,7 @@ def reset_unused(
     widen = False
     if s.onset_widen and s.onset_restart and calm is not None:  # the first fault's onset
         first = (lead != 0) & (calm <= s.onset_restart) & ~any_decl
-        noise = own_mean < s.onset_widen * jnp.sqrt(jnp.maximum(own_var, 0.0))
+        noise = own_mean < s.onset_widen * own_sd
         widen = first & ~declared & ~low & (since > s.onset_restart) & (noise | ~lead_f)
         held = held | widen
     live = ~low & ~held  # (F, *runs)
