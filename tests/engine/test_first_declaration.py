@@ -18,8 +18,9 @@ def test_declare_rel_refuses_a_loose_estimate_only_while_nothing_is_declared():
     declared = jnp.asarray([[False, False, False, True], [False, False, False, False]])
     est = jnp.asarray([[0.05, 0.05, 0.05, 0.5], [0.3, 0.3, 0.1, 0.3]])
     sd = jnp.asarray([[0.5, 0.5, 0.5, 0.01], [0.05, 0.09, 0.001, 0.09]])
-    on = declarable(EstSettings(declare_rel=0.2), declared, est, sd)
-    off = declarable(EstSettings(declare_rel=0.0), declared, est, sd)
+    s = EstSettings(declare_rel_next=0.0)  # the later declarations' test apart
+    on = declarable(s._replace(declare_rel=0.2), declared, est, sd)
+    off = declarable(s._replace(declare_rel=0.0), declared, est, sd)
     np.testing.assert_array_equal(on[1], [True, False, False, True])
     np.testing.assert_array_equal(off[1], [True, True, False, True])
     np.testing.assert_array_equal(on[0], [False, False, False, True])
@@ -45,9 +46,9 @@ def test_declare_trend_refuses_an_estimate_projected_below_declare_min():
 
 
 def test_declare_rel_next_refuses_a_loose_estimate_only_while_a_fault_is_declared():
-    """``declare_rel_next`` (session 27, off by default) is ``declare_rel`` for the later
-    declarations: with a fault declared a new one needs ``sd <= declare_rel_next * est``;
-    with nothing declared only ``declare_rel`` counts."""
+    """``declare_rel_next`` (session 27; 0.1 by default since session 32) is
+    ``declare_rel`` for the later declarations: with a fault declared a new one needs
+    ``sd <= declare_rel_next * est``; with nothing declared only ``declare_rel`` counts."""
     # faults (valve wear, leakage) x runs: valve wear declared in runs 0-2; leakage tight
     # (0.02 of 0.3), loose (0.03 of 0.3), loose but nothing declared (run 3)
     declared = jnp.asarray([[True, True, True, False], [False, False, False, False]])
@@ -58,7 +59,26 @@ def test_declare_rel_next_refuses_a_loose_estimate_only_while_a_fault_is_declare
     np.testing.assert_array_equal(got, [True, False, False, True])
     off = np.asarray(declarable(s._replace(declare_rel_next=0.0), declared, est, sd)[1])
     np.testing.assert_array_equal(off, [True, True, True, True])
-    assert EstSettings().declare_rel_next == 0.0  # off by default
+    assert EstSettings().declare_rel_next == 0.1  # since session 32, with declare_rel_calm
+
+
+def test_declare_rel_calm_holds_back_only_a_loose_estimate_of_a_slow_onset():
+    """``declare_rel_calm`` (session 32): ``declare_rel_next`` acts only more than that many
+    steps after model 0's last clear lead (``calm``): an abrupt fault's loose estimate,
+    declared soon after the onset, passes; a slow onset's does not; a tight one always."""
+    # faults (valve wear, leakage) x runs: valve wear declared; leakage loose (0.039 of
+    # 0.37) soon after the onset, loose long after it, tight long after it, loose at the limit
+    declared = jnp.asarray([[True] * 4, [False] * 4])
+    est = jnp.asarray([[0.5] * 4, [0.37, 0.37, 0.37, 0.37]])
+    sd = jnp.asarray([[0.01] * 4, [0.039, 0.039, 0.02, 0.039]])
+    calm = jnp.asarray([120, 650, 650, 500])
+    s = EstSettings(declare_rel_next=0.1, declare_rel_calm=500, declare_trend=0)
+    got = np.asarray(declarable(s, declared, est, sd, None, calm)[1])
+    np.testing.assert_array_equal(got, [True, False, True, True])
+    every = np.asarray(declarable(s._replace(declare_rel_calm=0), declared, est, sd, None, calm)[1])
+    np.testing.assert_array_equal(every, [False, False, True, False])
+    without = np.asarray(declarable(s, declared, est, sd)[1])  # no counter: every one
+    np.testing.assert_array_equal(without, every)
 
 
 def test_onset_widen_frees_awake_hypotheses_fitted_to_noise_at_the_first_onset():

@@ -198,23 +198,24 @@ def test_tuning_says_to_drop_the_table_from_its_fixed_size_copy():
 COUNTED = ("restart_gap", "floor_gap", "post_gap", "settle_steps", "post_floor_gap")
 COUNTED += ("retract_hold", "low_floor_age", "retract_young", "settle_creep", "retract_rise")
 COUNTED += ("drift_steps", "restore_steps", "retract_after", "onset_restart", "declare_trend")
-COUNTED += ("decl_restart",)
+COUNTED += ("decl_restart", "declare_rel_calm")
 
 
 def test_counted_settings_keep_their_meaning_in_seconds_at_another_dt():
-    s = EstSettings(floor_gap=3, retract_hold=1)
+    s = EstSettings(floor_gap=3, retract_hold=1, declare_rel_calm=500)
     assert settings_at_dt(s, 1e-4) is s  # dt == steps_dt: the same numbers, bit for bit
     off = s._replace(steps_dt=0.0)
     assert settings_at_dt(off, 1e-3) is off  # 0: counts are the plant's samples
     slow = settings_at_dt(s, 1e-3)  # sampled 10 times slower: 10 times fewer samples
     assert (slow.settle_steps, slow.post_floor_gap, slow.retract_hold) == (300, 20, 1)
-    assert (slow.low_floor_age, slow.restart_gap, slow.floor_gap, slow.post_gap) == (800, 1, 1, 0)
+    assert (slow.low_floor_age, slow.restart_gap, slow.floor_gap, slow.post_gap) == (600, 1, 1, 0)
     assert slow.retract_young == 6000  # 6 s either way
     assert slow.retract_rise == 100  # 0.1 s either way
     assert slow.drift_steps == 2  # 2 ms either way
     assert slow.onset_restart == 2  # 2 ms either way
     assert slow.declare_trend == 50  # 50 ms either way
     assert slow.decl_restart == 20  # 20 ms either way
+    assert slow.declare_rel_calm == 50  # 50 ms either way
     assert slow.end_prior == pytest.approx(10 * s.end_prior, rel=1e-12)  # the same rate
     back = {k: getattr(s, k) for k in (*COUNTED, "end_prior")}
     assert slow._replace(**back, steps_dt=1e-4) == s  # no other

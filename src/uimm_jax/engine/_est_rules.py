@@ -54,7 +54,7 @@ def floor_mean(s: EstSettings, declared: jax.Array, since: jax.Array, models: bo
     return jnp.where(any_decl, s.post_floor_mean, s.floor_mean)
 
 
-def declarable(s: EstSettings, declared, est, est_sd, trend=None) -> jax.Array:
+def declarable(s: EstSettings, declared, est, est_sd, trend=None, calm=None) -> jax.Array:
     """``(F, *runs)``: faults whose estimate allows a declaration (``declare_rel`` et al.).
 
     The estimate ``est`` (each fault's own hypothesis' for an undeclared fault) must be at
@@ -63,17 +63,22 @@ def declarable(s: EstSettings, declared, est, est_sd, trend=None) -> jax.Array:
     fault is below its floor and restarts, and a look-alike (leakage for valve wear) wins
     with an estimate of relative sd 0.22-0.28 where the true fault's first declaration has
     0.06-0.14, an abrupt one's 0.01-0.03 (docs/faults.md, "Session 11").  With
-    ``declare_rel_next`` the same holds while a fault is declared, at that fraction (off
-    by default; docs/faults.md, "Session 27").  With ``declare_trend`` the estimate
-    projected that many steps ahead at its recent fall ``trend`` (``EstState.trend``,
-    :mod:`uimm_jax.engine._est_drift`) must still be at least ``declare_min``.
+    ``declare_rel_next`` the same holds while a fault is declared, at that fraction (0.1
+    since session 32; docs/faults.md, "Session 27"), with ``declare_rel_calm`` only more than
+    that many steps after model 0's last clear lead ``calm`` ("Session 32").  With
+    ``declare_trend`` the estimate projected that many steps ahead at its recent fall
+    ``trend`` (``EstState.trend``, :mod:`uimm_jax.engine._est_drift`) must still be at
+    least ``declare_min``.
     """
     big = est >= s.declare_min
     later = jnp.any(declared, axis=0)
     if s.declare_rel > 0:
         big = big & (later | (est_sd <= s.declare_rel * est))
     if s.declare_rel_next > 0:  # a later declaration on a tight estimate too
-        big = big & (~later | (est_sd <= s.declare_rel_next * est))
+        tight = est_sd <= s.declare_rel_next * est
+        if s.declare_rel_calm and calm is not None:  # not for an abrupt fault's onset
+            tight = tight | (calm <= s.declare_rel_calm)
+        big = big & (~later | tight)
     if s.declare_trend and trend is not None:  # nor one falling towards nominal
         big = big & (est + s.declare_trend * jnp.minimum(trend, 0.0) >= s.declare_min)
     return big

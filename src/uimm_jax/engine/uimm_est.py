@@ -230,7 +230,7 @@ class UIMMEstDiagnoser(Diagnoser):
         if s.retract_pin:  # "D - f_j" holds the other declared faults at model 0's
             use = rules.pinned(use, declared)
         calm = state.calm
-        if s.onset_restart:  # the steps since model 0's last clear lead
+        if s.onset_restart or s.declare_rel_calm:  # steps since model 0's last clear lead
             clear = state.imm.log_mode_probs[0] >= np.log(rules.ONSET_CALM)
             calm = jnp.where(clear, 0, jnp.minimum(calm + 1, rules.CALM_CAP)).astype(jnp.int32)
         imm0, since = rules.reset_unused(
@@ -277,7 +277,7 @@ class UIMMEstDiagnoser(Diagnoser):
         def cand_set(c):
             full = self._candidate_set(c, declared)
             new = full & ~declared
-            big = rules.declarable(s, declared, est, est_sd, trend)
+            big = rules.declarable(s, declared, est, est_sd, trend, calm)
             return jnp.where(jnp.any(new & ~big, axis=0), declared, full)
 
         dec = decide(

@@ -47,7 +47,8 @@ class EstSettings(NamedTuple):
     (16), ``retract_below=0.05`` (18), ``restore_old=10``, ``restore_steps=5000`` (19) and
     ``retract_after=4000`` (21); and ``end_prior=1e-6`` (25), ``onset_restart=20`` (26),
     ``declare_trend=500`` (27), ``drift_walk=3`` (28), ``decl_restart=200`` (29) and
-    ``onset_widen=6`` (31), chosen on the acceptance cells pooled over seeds 0-4 (320
+    ``onset_widen=6`` (31), ``declare_rel_next=0.1`` with ``declare_rel_calm=500`` and
+    ``low_floor_age=6000`` (32), chosen on the acceptance cells pooled over seeds 0-4 (320
     runs a cell) rather than at seed 0 alone.  Each one's figures (false runs,
     coverage, delays, per cell and against the defaults before it) are in docs/faults.md,
     "Session by session".
@@ -137,7 +138,7 @@ class EstSettings(NamedTuple):
         low_floor_age: with ``post_floor_means`` and ``walk_settled``, the per-fault
             floors hold only while every declared fault is at least this many steps old
             (its ``since``); before, ``post_floor_mean`` (0: off, always the per-fault
-            floors; docs/faults.md, "Session 10, last").
+            floors; docs/faults.md, "Session 10, last"; 6000 since session 32, was 8000).
         declare_rel: while no fault is declared, a fault is declared only if its
             estimate's standard deviation is at most this fraction of the estimate (the
             estimate at least ``1 / declare_rel`` of its sd from nominal; 0: off): a
@@ -270,12 +271,18 @@ class EstSettings(NamedTuple):
             since session 27).
         declare_rel_next: while a fault is declared, another is declared only if its
             estimate's standard deviation is at most this fraction of the estimate
-            (``declare_rel`` for the later declarations; 0: off, the default): a
+            (``declare_rel`` for the later declarations; 0: off; 0.1 since session 32,
+            with ``declare_rel_calm``): a
             look-alike that explains a declared fault's lag or a new fault's first samples
             fits loosely (0.08 over seeds 0-4: false runs of the sizes and ramps cells 4
             -> 1 of 9,600, but second faults declared 3-6 ms later when abrupt and up to
             0.29 s later on ramps; see ``_est_rules.declarable``; docs/faults.md,
             "Session 27").
+        declare_rel_calm: steps: ``declare_rel_next`` holds only for a declaration
+            more than this many steps after model 0 last held ``ONSET_CALM`` (``calm``):
+            an abrupt new fault, declared within tens of ms of its onset, is not held
+            back; a slow onset's look-alike is (docs/faults.md, "Session 32"; 0: every
+            later declaration; 500, 50 ms at ``steps_dt``, the default since session 32).
         decl_restart: steps: within this many steps of a declaration, every undeclared
             hypothesis that does not lead and has probability below ``NEAR_FLOOR_MU``
             restarts from the prior at every step: its estimate was fitted without the
@@ -315,7 +322,7 @@ class EstSettings(NamedTuple):
     tangent_order: int = 6
     post_floor_means: tuple[float, ...] = ()
     settle_move: float = 10.0
-    low_floor_age: int = 8000
+    low_floor_age: int = 6000
     declare_rel: float = 0.15
     steps_dt: float = 1e-4
     retract_keep: bool = True
@@ -335,7 +342,8 @@ class EstSettings(NamedTuple):
     end_prior: float = 1e-6
     onset_restart: int = 20
     declare_trend: int = 500
-    declare_rel_next: float = 0.0
+    declare_rel_next: float = 0.1
+    declare_rel_calm: int = 500
     decl_restart: int = 200
     onset_widen: float = 6.0
 
@@ -386,6 +394,7 @@ _RULES: dict[str, tuple[float, bool, str]] = {
     "onset_restart": (0, False, "steps; 0: off"),
     "declare_trend": (0, False, "steps; 0: off"),
     "declare_rel_next": (0.0, False, "a fraction of the estimate; 0: off"),
+    "declare_rel_calm": (0, False, "steps; 0: every later declaration"),
     "decl_restart": (0, False, "steps; 0: off"),
     "onset_widen": (0.0, False, "standard deviations; 0: off"),
 }
@@ -525,7 +534,7 @@ def est_value_from_text(name: str, text: str) -> Any:
 COUNTED_SETTINGS = ("restart_gap", "floor_gap", "post_gap", "settle_steps", "post_floor_gap")
 COUNTED_SETTINGS += ("retract_hold", "low_floor_age", "retract_young", "settle_creep")
 COUNTED_SETTINGS += ("retract_rise", "drift_steps", "restore_steps", "retract_after")
-COUNTED_SETTINGS += ("onset_restart", "declare_trend", "decl_restart")
+COUNTED_SETTINGS += ("onset_restart", "declare_trend", "decl_restart", "declare_rel_calm")
 """The settings counted in steps, which :func:`settings_at_dt` converts."""
 
 

@@ -31,10 +31,10 @@ def trace(sc, seed, r, k0, k1, st):
         def body(st, uy):
             st2, info = d.step(st, setup.params, uy[0], uy[1], with_cov=False)
             var = jnp.diagonal(st2.imm.cov[n:, n:], axis1=0, axis2=1)
-            return st2, (st2.imm.log_mode_probs, st2.imm.mean[n:], var, st2.since, info.declared)
+            return st2, (st2.imm.log_mode_probs, st2.imm.mean[n:], var, st2.since, info.declared, st2.calm)
         f = jax.jit(lambda s0, xs: jax.lax.scan(body, s0, xs))
         _, o = f(setup.init_state, (us, jnp.asarray(y)))
-        rec.update(zip(("lmp", "mag", "var", "since", "dec"), map(np.asarray, o)))
+        rec.update(zip(("lmp", "mag", "var", "since", "dec", "calm"), map(np.asarray, o)))
         return srun.filter_measurements(setup, y, u, **kw)
     orig = jax.random.PRNGKey
     jax.random.PRNGKey = lambda s: key
@@ -47,7 +47,7 @@ def trace(sc, seed, r, k0, k1, st):
     for k in range(k0, k1, st):
         mp = np.exp(rec['lmp'][k])
         own = [f"{rec['mag'][k, j, j+1].item():.3f}±{np.sqrt(rec['var'][k, j+1, j].item()):.3f}" for j in range(F)]
-        print(k, np.round(mp.ravel(), 4), rec['dec'][k], 'own:', own, 'm0:', np.round(rec['mag'][k, :, 0].ravel(), 3), 'since', rec['since'][k].ravel())
+        print(k, np.round(mp.ravel(), 4), rec['dec'][k], 'own:', own, 'm0:', np.round(rec['mag'][k, :, 0].ravel(), 3), 'since', rec['since'][k].ravel(), 'calm', rec['calm'][k])
     print({k: o.summary[k] for k in ("declarations", "retractions")})
 
 
