@@ -47,7 +47,7 @@ class EstSettings(NamedTuple):
     (16), ``retract_below=0.05`` (18), ``restore_old=10``, ``restore_steps=5000`` (19) and
     ``retract_after=4000`` (21); and ``end_prior=1e-6`` (25), ``onset_restart=20`` (26),
     ``declare_trend=500`` (27), ``drift_walk=3`` (28), ``decl_restart=200`` (29) and
-    ``onset_widen=6`` (31), ``declare_rel_next=0.1`` with ``declare_rel_calm=500`` and
+    ``onset_widen=6`` (31), ``declare_rel_next=0.1`` with ``declare_rel_calm=300`` and
     ``low_floor_age=6000`` (32), chosen on the acceptance cells pooled over seeds 0-4 (320
     runs a cell) rather than at seed 0 alone.  Each one's figures (false runs,
     coverage, delays, per cell and against the defaults before it) are in docs/faults.md,
@@ -282,7 +282,7 @@ class EstSettings(NamedTuple):
             more than this many steps after model 0 last held ``ONSET_CALM`` (``calm``):
             an abrupt new fault, declared within tens of ms of its onset, is not held
             back; a slow onset's look-alike is (docs/faults.md, "Session 32"; 0: every
-            later declaration; 500, 50 ms at ``steps_dt``, the default since session 32).
+            later declaration; 300, 30 ms at ``steps_dt``, the default since session 32).
         decl_restart: steps: within this many steps of a declaration, every undeclared
             hypothesis that does not lead and has probability below ``NEAR_FLOOR_MU``
             restarts from the prior at every step: its estimate was fitted without the
@@ -343,7 +343,7 @@ class EstSettings(NamedTuple):
     onset_restart: int = 20
     declare_trend: int = 500
     declare_rel_next: float = 0.1
-    declare_rel_calm: int = 500
+    declare_rel_calm: int = 300
     decl_restart: int = 200
     onset_widen: float = 6.0
 
